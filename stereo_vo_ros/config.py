@@ -1,0 +1,373 @@
+"""One typed configuration for every part of the pipeline, online and offline.
+
+The configuration is a tree of dataclasses (one section per component). It is loaded from a
+YAML file in the ROS 2 parameter form::
+
+    /**:
+      ros__parameters:
+        tracker:
+          max_features: 200
+
+so the very same file serves ``ros2 run ... --params-file`` and ``stereo_vo run --config``.
+Each field carries its documentation, its unit and its valid range in the dataclass field
+metadata; the ROS node declares its parameters (with descriptors) from the same metadata and the
+YAML in ``config/stereo_vo.yaml`` is checked against it by a test, so the schema lives here only.
+Unknown or misspelt keys are rejected, never ignored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import yaml
+
+from .errors import ConfigError
+
+
+def _f(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
+       choices: tuple[str, ...] | None = None, dynamic: bool = False) -> Any:
+    """Declare a config field with its documentation, range and run-time mutability."""
+    meta = {'doc': doc, 'lo': lo, 'hi': hi, 'choices': choices, 'dynamic': dynamic}
+    if isinstance(default, (list, tuple)):
+        value = list(default)
+        return field(default_factory=lambda: list(value), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+TRACKER_VARIANTS = ('baseline', 'dc', 'bc', 'db', 'full')
+
+
+@dataclass
+class TrackerConfig:
+    """KLT tracking with the checks of the light adaptive feature tracking paper (paper 2)."""
+
+    max_features: int = _f(200, 'Maximum number of tracked features (paper 2: 200).', 8, 5000)
+    min_distance_px: float = _f(
+        15.0, 'Minimum distance between detected corners (pixels).', 1.0, 200.0)
+    quality_level: float = _f(
+        0.01, 'Shi-Tomasi quality level relative to the best corner.', 1e-4, 1.0)
+    block_size: int = _f(7, 'Shi-Tomasi block size (pixels).', 3, 31)
+    win_size_px: int = _f(21, 'KLT window side (pixels, odd).', 5, 61)
+    pyramid_levels: int = _f(
+        3, 'KLT pyramid levels above the base image when no prediction is available.', 0, 8)
+    predicted_pyramid_levels: int = _f(
+        1, 'KLT pyramid levels when the motion prior gives an initial flow.', 0, 8)
+    use_motion_prior: bool = _f(
+        True, 'Predict feature positions from the constant-velocity prior (initial flow).')
+    max_iterations: int = _f(30, 'KLT iterations per pyramid level.', 1, 200)
+    variant: str = _f(
+        'full', 'Which checks run: baseline (forward-backward + left-right, VINS-Fusion), '
+        'dc (+disparity constraint), bc (+bi-circular check), db (dc+bc, fixed threshold), '
+        'full (dc+bc with adaptive threshold).', choices=TRACKER_VARIANTS)
+    bicircular_mode: str = _f(
+        'roundtrip', 'Reading of eq. 7: roundtrip tracks right(t2)->right(t1)->right(t2); '
+        'closure compares right(t2)->right(t1) with the stored right(t1) point.',
+        choices=('roundtrip', 'closure'))
+    fb_threshold_px: float = _f(
+        0.5, 'Forward-backward check threshold delta1 (pixels).', 0.01, 50.0, dynamic=True)
+    lr_threshold_px: float = _f(
+        0.5, 'Left-right check threshold delta2 (pixels).', 0.01, 50.0, dynamic=True)
+    disparity_y_threshold_px: float = _f(
+        2.0, 'Disparity constraint delta3: |y_left - y_right| (pixels); for raw input the '
+        'distance to the epipolar line.', 0.01, 50.0, dynamic=True)
+    min_disparity_px: float = _f(
+        0.0, 'Smallest accepted disparity x_left - x_right (pixels).', -10.0, 1000.0,
+        dynamic=True)
+    max_disparity_px: float = _f(
+        300.0, 'Largest accepted disparity (pixels).', 1.0, 5000.0, dynamic=True)
+    bc_threshold_px: float = _f(
+        5.0, 'Fixed bi-circular threshold delta_d for variants bc and db (pixels).',
+        0.01, 100.0, dynamic=True)
+    adaptive_rho: float = _f(
+        0.23, 'rho of the adaptive threshold delta_d = rho*loss/maxtrack + epsilon.',
+        0.0, 100.0, dynamic=True)
+    adaptive_epsilon_px: float = _f(
+        5.0, 'epsilon of the adaptive threshold (pixels).', 0.0, 100.0, dynamic=True)
+
+
+@dataclass
+class BucketingConfig:
+    """Bucketing (paper 1, section III-C): region of interest and a grid of buckets."""
+
+    enabled: bool = _f(True, 'Select features with the bucketing grid.', dynamic=True)
+    roi_margin_px: int = _f(
+        10, 'Border excluded from the region of interest on every side (pixels).', 0, 500)
+    cols: int = _f(12, 'Bucket grid columns.', 1, 200)
+    rows: int = _f(4, 'Bucket grid rows.', 1, 200)
+    max_per_bucket: int = _f(6, 'Maximum features kept per bucket.', 1, 1000, dynamic=True)
+
+
+@dataclass
+class FilterConfig:
+    """Kalman filter on the egomotion state (V_X, V_Y, V_Z, w_X, w_Y, w_Z) (paper 1, III-E)."""
+
+    type: str = _f('ispkf', 'Filter: ispkf, iekf, ukf or ekf.',
+                   choices=('ispkf', 'iekf', 'ukf', 'ekf'))
+    pixel_noise_px: float = _f(
+        1.0, 'Measurement noise standard deviation (pixels).', 1e-3, 100.0, dynamic=True)
+    velocity_process_noise: float = _f(
+        2.0, 'Process noise std of linear velocity per frame (m/s).', 1e-6, 1e3, dynamic=True)
+    angular_process_noise_deg: float = _f(
+        10.0, 'Process noise std of angular velocity per frame (deg/s).', 1e-6, 1e4,
+        dynamic=True)
+    initial_velocity_std: float = _f(
+        10.0, 'Prior std of linear velocity at start and after loss (m/s).', 1e-3, 1e4)
+    initial_angular_std_deg: float = _f(
+        30.0, 'Prior std of angular velocity at start and after loss (deg/s).', 1e-3, 1e5)
+    max_iterations: int = _f(
+        20, 'Maximum iterations of the iterated filters (ISPKF, IEKF).', 1, 100000)
+    threshold_velocity: float = _f(
+        1e-3, 'Termination: every linear velocity changes less than this (m/s).', 1e-12, 10.0)
+    threshold_angular_deg: float = _f(
+        1e-3, 'Termination: every angular velocity changes less than this (deg/s).',
+        1e-12, 100.0)
+    sigma_alpha: float = _f(1.0, 'Sigma-point spread alpha.', 1e-4, 10.0)
+    sigma_beta: float = _f(2.0, 'Sigma-point beta (2 is optimal for Gaussians).', 0.0, 10.0)
+    sigma_kappa: float = _f(0.0, 'Sigma-point kappa.', -5.0, 100.0)
+
+
+@dataclass
+class RansacConfig:
+    """RANSAC outlier rejection (paper 1, section III-D, eq. 14)."""
+
+    enabled: bool = _f(True, 'Reject outliers with RANSAC before the final update.', dynamic=True)
+    probability: float = _f(
+        0.99, 'p: probability that at least one sample is outlier-free.', 0.5, 0.999999)
+    outlier_ratio: float = _f(
+        0.5, 'epsilon: assumed outlier ratio used in eq. 14.', 0.0, 0.95)
+    max_hypotheses: int = _f(300, 'Upper bound on the number of samples.', 1, 100000)
+    inlier_threshold_px: float = _f(
+        2.0, 'Inlier if the Euclidean reprojection error in both current images is below this '
+        '(pixels).', 0.05, 100.0, dynamic=True)
+    hypothesis_iterations: int = _f(
+        3, 'Filter iterations per hypothesis on its minimal sample.', 1, 100)
+    seed: int = _f(0, 'Seed of the random sampler (deterministic runs).', 0, 2**31 - 1)
+
+
+@dataclass
+class PipelineConfig:
+    """Images-to-odometry pipeline: gating, loss handling and covariance."""
+
+    input_kind: str = _f(
+        'rectified', 'Input images: rectified (CameraInfo P describes them) or raw (K, D and R '
+        'describe them; tracked points are undistorted, images are not rectified).',
+        choices=('rectified', 'raw'))
+    min_features: int = _f(
+        12, 'Fewer stereo correspondences than this: the frame is degenerate.', 3, 10000)
+    min_inliers: int = _f(
+        8, 'Fewer RANSAC inliers than this: too few inliers.', 3, 10000, dynamic=True)
+    max_lost_time_s: float = _f(
+        1.0, 'Coast on the constant-velocity prediction for at most this long when tracking is '
+        'lost (s); then the velocity is zeroed and the state is LOST.', 0.0, 60.0)
+    lost_covariance_inflation: float = _f(
+        10.0, 'Factor on the velocity covariance for every coasted frame.', 1.0, 1e6)
+    max_gap_s: float = _f(
+        1.0, 'A larger time step than this re-initialises the velocity (s).', 0.0, 3600.0)
+    max_speed: float = _f(
+        60.0, 'A linear speed above this is rejected as implausible (m/s).', 0.1, 1000.0,
+        dynamic=True)
+
+
+@dataclass
+class RosConfig:
+    """ROS 2 adapter: frames, topics, synchronisation and outputs."""
+
+    odom_frame: str = _f('odom', 'Odometry frame (REP-105).')
+    base_frame: str = _f('base_link', 'Robot body frame (REP-105) used as child frame.')
+    camera_frame: str = _f(
+        '', 'Left camera optical frame; empty: the header frame_id of the left image.')
+    publish_tf: bool = _f(True, 'Broadcast odom -> base_frame on /tf when tf2_ros exists.')
+    invert_tf: bool = _f(False, 'Broadcast base_frame -> odom instead (for another parent).')
+    base_from_camera_xyz: list = _f(
+        [0.0, 0.0, 0.0], 'Fallback translation of the left camera in the base frame (m) '
+        'when TF has no transform.')
+    base_from_camera_rpy_deg: list = _f(
+        [-90.0, 0.0, -90.0], 'Fallback rotation base <- camera as roll, pitch, yaw (deg); the '
+        'default is the standard optical-to-body rotation (z forward -> x forward).')
+    qos: str = _f('sensor_data', 'QoS of the inputs: sensor_data (best effort) or reliable.',
+                  choices=('sensor_data', 'reliable'))
+    sync: str = _f('approximate', 'Stereo pairing: exact or approximate stamps.',
+                   choices=('exact', 'approximate'))
+    sync_slop_s: float = _f(0.005, 'Largest stamp difference of an approximate pair (s).',
+                            0.0, 1.0)
+    path_max_length: int = _f(5000, 'Poses kept in the published path.', 1, 1000000,
+                              dynamic=True)
+    publish_debug_image: bool = _f(True, 'Offer the debug image (drawn only when subscribed).')
+    left_image_topic: str = _f('/left/image_rect', 'Left image topic read from bags.')
+    right_image_topic: str = _f('/right/image_rect', 'Right image topic read from bags.')
+    left_info_topic: str = _f('/left/camera_info', 'Left camera_info topic read from bags.')
+    right_info_topic: str = _f('/right/camera_info', 'Right camera_info topic read from bags.')
+
+
+@dataclass
+class Config:
+    """The whole configuration: one section per component."""
+
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    bucketing: BucketingConfig = field(default_factory=BucketingConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    ros: RosConfig = field(default_factory=RosConfig)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    # -- flat views ---------------------------------------------------------------------
+    def items(self) -> Iterator[tuple[str, Any, dataclasses.Field]]:
+        """Yield ``(dotted_name, value, field)`` for every leaf parameter."""
+        for sec in dataclasses.fields(self):
+            section = getattr(self, sec.name)
+            for f in dataclasses.fields(section):
+                yield f'{sec.name}.{f.name}', getattr(section, f.name), f
+
+    def as_dict(self) -> dict[str, dict[str, Any]]:
+        """Return the nested plain-dict form (what the YAML holds under ros__parameters)."""
+        return dataclasses.asdict(self)
+
+    def replace(self, **dotted: Any) -> 'Config':
+        """Return a copy with dotted overrides, e.g. ``replace(**{'filter.type': 'ekf'})``."""
+        data = self.as_dict()
+        for key, value in dotted.items():
+            sec, _, name = key.partition('.')
+            if sec not in data or name not in data[sec]:
+                raise ConfigError(f'unknown parameter {key!r}')
+            data[sec][name] = value
+        return from_dict(data)
+
+
+SECTIONS = {f.name: f.default_factory for f in dataclasses.fields(Config)}
+
+
+def _coerce(name: str, value: Any, f: dataclasses.Field) -> Any:
+    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+    kind = type(default)
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f'{name} must be true or false, got {value!r}')
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise ConfigError(f'{name} must be an integer, got {value!r}')
+        return value
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f'{name} must be a number, got {value!r}')
+        return float(value)
+    if kind is str:
+        if not isinstance(value, str):
+            raise ConfigError(f'{name} must be a string, got {value!r}')
+        return value
+    if kind is list:
+        if not isinstance(value, (list, tuple)) or len(value) != len(default):
+            raise ConfigError(f'{name} must be a list of {len(default)} numbers, got {value!r}')
+        try:
+            return [float(v) for v in value]
+        except (TypeError, ValueError):
+            raise ConfigError(f'{name} must be a list of numbers, got {value!r}') from None
+    return value  # pragma: no cover
+
+
+def validate(cfg: Config) -> None:
+    """Check every value against its type, range and choices; raise ConfigError if not."""
+    for name, value, f in cfg.items():
+        meta = f.metadata
+        if meta.get('choices') and value not in meta['choices']:
+            raise ConfigError(f'{name} must be one of {list(meta["choices"])}, got {value!r}')
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            lo, hi = meta.get('lo'), meta.get('hi')
+            if value != value or (lo is not None and value < lo) or (
+                    hi is not None and value > hi):
+                raise ConfigError(f'{name} must be within [{lo}, {hi}], got {value!r}')
+    if cfg.tracker.win_size_px % 2 == 0:
+        raise ConfigError(f'tracker.win_size_px must be odd, got {cfg.tracker.win_size_px}')
+    if cfg.tracker.min_disparity_px >= cfg.tracker.max_disparity_px:
+        raise ConfigError('tracker.min_disparity_px must be below tracker.max_disparity_px')
+
+
+def from_dict(data: dict[str, Any] | None) -> Config:
+    """Build a Config from the nested dict form; unknown keys raise ConfigError."""
+    data = data or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f'configuration must be a mapping, got {type(data).__name__}')
+    sections = {}
+    for sec_name, raw in data.items():
+        if sec_name not in SECTIONS:
+            raise ConfigError(f'unknown configuration section {sec_name!r}; known: '
+                              f'{sorted(SECTIONS)}')
+        if not isinstance(raw, dict):
+            raise ConfigError(f'section {sec_name!r} must be a mapping, got {raw!r}')
+        cls_fields = {f.name: f for f in dataclasses.fields(SECTIONS[sec_name]())}
+        values = {}
+        for key, value in raw.items():
+            if key not in cls_fields:
+                raise ConfigError(f'unknown parameter {sec_name}.{key}; known: '
+                                  f'{sorted(cls_fields)}')
+            values[key] = _coerce(f'{sec_name}.{key}', value, cls_fields[key])
+        sections[sec_name] = SECTIONS[sec_name]().__class__(**values)
+    return Config(**sections)
+
+
+def from_flat(params: dict[str, Any]) -> Config:
+    """Build a Config from dotted names (``{'filter.type': 'ekf'}``), as ROS parameters are."""
+    nested: dict[str, dict[str, Any]] = {}
+    for key, value in params.items():
+        sec, dot, name = key.partition('.')
+        if not dot:
+            raise ConfigError(f'parameter {key!r} has no section (expected section.name)')
+        nested.setdefault(sec, {})[name] = value
+    return from_dict(nested)
+
+
+def load(path: str | Path | None = None) -> Config:
+    """Load a Config from a YAML file (ROS 2 params form or plain nested form).
+
+    ``None`` gives the defaults. Accepts ``{node_name or '/**': {'ros__parameters': {...}}}``
+    (the first node entry is used) or the plain nested sections.
+    """
+    if path is None:
+        return Config()
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f'cannot read configuration file {str(path)!r}: {exc.strerror}') \
+            from None
+    try:
+        doc = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f'configuration file {str(path)!r} is not valid YAML: {exc}') from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f'configuration file {str(path)!r} must hold a mapping')
+    for value in doc.values():
+        if isinstance(value, dict) and 'ros__parameters' in value:
+            doc = value['ros__parameters'] or {}
+            break
+    return from_dict(doc)
+
+
+def to_yaml(cfg: Config | None = None, node: str = '/**') -> str:
+    """Render a Config as a commented ROS 2 parameter file."""
+    cfg = cfg or Config()
+    lines = [f'{node}:', '  ros__parameters:']
+    for sec in dataclasses.fields(cfg):
+        section = getattr(cfg, sec.name)
+        lines.append(f'    # {type(section).__doc__.strip().splitlines()[0]}')
+        lines.append(f'    {sec.name}:')
+        for f in dataclasses.fields(section):
+            meta = f.metadata
+            note = meta['doc']
+            if meta.get('lo') is not None:
+                note += f' Range [{meta["lo"]}, {meta["hi"]}].'
+            if meta.get('dynamic'):
+                note += ' Settable at run time.'
+            lines.append(f'      # {note}')
+            dumped = yaml.safe_dump(getattr(section, f.name), default_flow_style=True)
+            dumped = dumped.strip().removesuffix('...').strip()
+            lines.append(f'      {f.name}: {dumped}')
+    return '\n'.join(lines) + '\n'

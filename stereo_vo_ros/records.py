@@ -1,0 +1,157 @@
+"""Records passed between the stages: stereo frames in, motion and odometry out.
+
+Frames and units used throughout the package:
+
+* camera optical frame: x right, y down, z forward (metres);
+* ``world``: the optical frame of the FIRST left camera of a run (KITTI convention);
+* ``T_a_b``: 4x4 homogeneous transform taking points from frame ``b`` to frame ``a``;
+* velocities (V_X, V_Y, V_Z, w_X, w_Y, w_Z) are in m/s and rad/s, expressed in the previous left
+  camera frame (paper 1's state, with the previous LEFT camera as reference).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .camera import StereoCalibration
+
+
+class TrackingStatus(enum.Enum):
+    """Outcome of one stereo frame."""
+
+    INITIALIZING = 'initializing'  #: first frame, or first frame after a reset/loss
+    OK = 'ok'
+    DEGENERATE = 'degenerate'  #: too few correspondences or an ill-conditioned solve
+    TOO_FEW_INLIERS = 'too_few_inliers'  #: RANSAC kept fewer inliers than configured
+    LOST = 'lost'  #: coasting ran out; velocity zeroed, covariance large
+
+
+@dataclass(frozen=True)
+class StereoFrame:
+    """One synchronised stereo pair.
+
+    Attributes
+    ----------
+    left, right : np.ndarray
+        (H, W) uint8 or uint16 grey images (rectified or raw, as ``calibration`` says).
+    stamp_s : float
+        Capture time (s).
+    calibration : StereoCalibration
+        Calibration valid for this pair.
+
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    stamp_s: float
+    calibration: 'StereoCalibration'
+
+
+@dataclass
+class Correspondences:
+    """Stereo correspondences between the previous and the current pair.
+
+    Every array has N rows, one per feature; pixel coordinates are (x right, y down), float64,
+    in the undistorted (ideal pinhole) image of the camera named.
+    """
+
+    prev_left: np.ndarray  #: (N, 2) left image at t-1 (pixels)
+    prev_right: np.ndarray  #: (N, 2) right image at t-1 (pixels)
+    cur_left: np.ndarray  #: (N, 2) left image at t (pixels)
+    cur_right: np.ndarray  #: (N, 2) right image at t (pixels)
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  #: (N,) int64
+    ages: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  #: (N,) frames
+
+    def __len__(self) -> int:
+        return int(self.prev_left.shape[0])
+
+    def subset(self, mask: np.ndarray) -> 'Correspondences':
+        """Return the rows selected by a boolean mask or an index array (copies)."""
+        ids = self.ids[mask] if self.ids.size else self.ids
+        ages = self.ages[mask] if self.ages.size else self.ages
+        return Correspondences(self.prev_left[mask], self.prev_right[mask],
+                               self.cur_left[mask], self.cur_right[mask], ids, ages)
+
+
+@dataclass
+class MotionEstimate:
+    """Frame-to-frame egomotion from the estimator (paper 1).
+
+    Attributes
+    ----------
+    velocity : np.ndarray
+        (6,) float64 (V_X, V_Y, V_Z [m/s], w_X, w_Y, w_Z [rad/s]) in the previous left frame.
+    covariance : np.ndarray
+        (6, 6) float64 covariance of ``velocity`` (same units, squared).
+    T_prev_cur : np.ndarray
+        (4, 4) pose of the current left camera in the previous left camera frame.
+    inliers : np.ndarray
+        (N,) bool, True for the correspondences used in the final update.
+    iterations : int
+        Filter iterations of the final update.
+    status : TrackingStatus
+        OK, DEGENERATE or TOO_FEW_INLIERS.
+    hypotheses : int
+        RANSAC samples drawn (0 without RANSAC).
+
+    """
+
+    velocity: np.ndarray
+    covariance: np.ndarray
+    T_prev_cur: np.ndarray
+    inliers: np.ndarray
+    iterations: int
+    status: TrackingStatus
+    hypotheses: int = 0
+
+
+@dataclass
+class OdometryResult:
+    """What the pipeline returns for every stereo pair.
+
+    Attributes
+    ----------
+    stamp_s : float
+        Stamp of the pair (s).
+    T_world_cam : np.ndarray
+        (4, 4) pose of the current left camera in ``world`` (the first left camera frame).
+    pose_covariance : np.ndarray
+        (6, 6) covariance of the pose as (x, y, z, rot_x, rot_y, rot_z) in ``world``
+        (m^2, rad^2), a left perturbation ``T = exp(d) T_world_cam``, ROS order.
+    velocity : np.ndarray
+        (6,) camera velocity (m/s, rad/s) in the CURRENT left camera frame.
+    velocity_covariance : np.ndarray
+        (6, 6) covariance of ``velocity``.
+    status : TrackingStatus
+        Status of this frame.
+    n_tracked, n_inliers, iterations : int
+        Stereo correspondences handed to the estimator, inliers kept, filter iterations.
+    timings_ms : dict
+        Milliseconds per stage (``track``, ``estimate``, ``total``, ...).
+    message : str
+        Human-readable reason when the status is not OK.
+    features : Correspondences or None
+        The correspondences of this frame (for the debug image); None on the first frame.
+    inliers : np.ndarray or None
+        (N,) bool inlier mask matching ``features``.
+
+    """
+
+    stamp_s: float
+    T_world_cam: np.ndarray
+    pose_covariance: np.ndarray
+    velocity: np.ndarray
+    velocity_covariance: np.ndarray
+    status: TrackingStatus
+    n_tracked: int = 0
+    n_inliers: int = 0
+    iterations: int = 0
+    timings_ms: dict = field(default_factory=dict)
+    message: str = ''
+    features: Correspondences | None = None
+    inliers: np.ndarray | None = None
