@@ -124,6 +124,9 @@ class FilterConfig:
     threshold_angular_deg: float = _f(
         1e-3, 'Termination: every angular velocity changes less than this (deg/s).',
         1e-12, 100.0)
+    ispkf_spread: str = _f(
+        'posterior', 'ISPKF sigma-point spread: posterior (covariance of the latest iterate) or '
+        'prior (prior covariance at every iteration).', choices=('posterior', 'prior'))
     sigma_alpha: float = _f(1.0, 'Sigma-point spread alpha.', 1e-4, 10.0)
     sigma_beta: float = _f(2.0, 'Sigma-point beta (2 is optimal for Gaussians).', 0.0, 10.0)
     sigma_kappa: float = _f(0.0, 'Sigma-point kappa.', -5.0, 100.0)

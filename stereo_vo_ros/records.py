@@ -98,6 +98,8 @@ class MotionEstimate:
         OK, DEGENERATE or TOO_FEW_INLIERS.
     hypotheses : int
         RANSAC samples drawn (0 without RANSAC).
+    message : str
+        Why the status is not OK (empty when OK).
 
     """
 
@@ -108,6 +110,7 @@ class MotionEstimate:
     iterations: int
     status: TrackingStatus
     hypotheses: int = 0
+    message: str = ''
 
 
 @dataclass
@@ -139,6 +142,9 @@ class OdometryResult:
         The correspondences of this frame (for the debug image); None on the first frame.
     inliers : np.ndarray or None
         (N,) bool inlier mask matching ``features``.
+    accepted : bool
+        False when the frame was ignored (stamp not after the previous one); the pose is then
+        the previous one and nothing should be published for it.
 
     """
 
@@ -155,3 +161,4 @@ class OdometryResult:
     message: str = ''
     features: Correspondences | None = None
     inliers: np.ndarray | None = None
+    accepted: bool = True

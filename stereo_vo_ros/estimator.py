@@ -1,0 +1,164 @@
+"""Frame-to-frame egomotion from stereo correspondences (paper 1, section III).
+
+:class:`MotionEstimator` holds the filter state (the velocity and its covariance) and, for each
+new set of correspondences between the previous and the current stereo pair, runs
+
+1. the constant-velocity prediction ``y_k+1 = y_k + w_k`` (``P += Q``),
+2. bucketing of the correspondences (section III-C),
+3. RANSAC with 3-point samples (section III-D),
+4. the final filter update on all inliers of the best sample (section III-E),
+
+and returns a :class:`~stereo_vo_ros.records.MotionEstimate`. It runs on correspondences from any
+front end (the KLT tracker, a simulation, an .npz file) and imports no ROS.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from . import bucketing
+from .camera import StereoCalibration
+from .config import Config
+from .filters import make_filter
+from .motion import TransferModel, transform_from_velocity
+from .ransac import BatchedMeasurement, ransac, reprojection_errors
+from .records import Correspondences, MotionEstimate, TrackingStatus
+
+LOG = logging.getLogger(__name__)
+
+
+class MotionEstimator:
+    """Egomotion filter: the state and its update from correspondences.
+
+    Parameters
+    ----------
+    config : Config
+        Uses the ``filter``, ``ransac``, ``bucketing`` and ``pipeline`` sections.
+
+    Attributes
+    ----------
+    mean : (6,) float64 current velocity estimate (m/s, rad/s) in the previous left frame.
+    cov : (6, 6) float64 its covariance.
+
+    """
+
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.filter = make_filter(config.filter)
+        self.rng = np.random.default_rng(config.ransac.seed)
+        self.reset()
+
+    # -- state -------------------------------------------------------------------------
+    def initial_covariance(self) -> np.ndarray:
+        """Prior covariance at start and after loss (6, 6)."""
+        f = self.config.filter
+        return np.diag([f.initial_velocity_std ** 2] * 3 +
+                       [np.deg2rad(f.initial_angular_std_deg) ** 2] * 3)
+
+    def process_noise(self) -> np.ndarray:
+        """Q (6, 6): per-frame random walk of the velocities."""
+        f = self.config.filter
+        return np.diag([f.velocity_process_noise ** 2] * 3 +
+                       [np.deg2rad(f.angular_process_noise_deg) ** 2] * 3)
+
+    def reset(self, velocity: np.ndarray | None = None) -> None:
+        """Forget the motion: zero (or given) velocity with the initial covariance."""
+        self.mean = np.zeros(6) if velocity is None else np.asarray(velocity, np.float64).copy()
+        self.cov = self.initial_covariance()
+
+    def predict(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return the constant-velocity prediction (mean (6,), cov (6, 6)); no state change."""
+        cov = self.cov + self.process_noise()
+        return self.mean.copy(), cov
+
+    def coast(self, inflation: float | None = None) -> None:
+        """Keep the predicted velocity and inflate its covariance (no usable measurements)."""
+        mean, cov = self.predict()
+        factor = self.config.pipeline.lost_covariance_inflation if inflation is None \
+            else inflation
+        self.mean = mean
+        self.cov = np.minimum(cov * factor, self.initial_covariance() * 100.0) \
+            if factor > 1 else cov
+        self.cov = 0.5 * (self.cov + self.cov.T)
+
+    # -- update ------------------------------------------------------------------------
+    def estimate(self, corr: Correspondences, calib: StereoCalibration, dt: float,
+                 calib_cur: StereoCalibration | None = None,
+                 image_size: tuple[int, int] | None = None) -> MotionEstimate:
+        """Estimate the motion between the previous and the current pair.
+
+        Parameters
+        ----------
+        corr : correspondences (ideal pixels) previous left/right -> current left/right.
+        calib : calibration of the previous pair.
+        dt : time between the pairs (s), > 0.
+        calib_cur : calibration of the current pair when it changed.
+        image_size : (width, height) for bucketing; default the calibration's.
+
+        Returns
+        -------
+        MotionEstimate. On OK the filter state is updated; otherwise the state coasts (the
+        prediction is kept with an inflated covariance) and the estimate carries it.
+
+        """
+        cfg = self.config
+        prior_mean, prior_cov = self.predict()
+        n_all = len(corr)
+        used = np.zeros(n_all, bool)
+        finite = np.all(np.isfinite(np.hstack([corr.prev_left, corr.prev_right, corr.cur_left,
+                                               corr.cur_right])), axis=1) if n_all else used
+        candidates = np.flatnonzero(finite)
+        if candidates.size and cfg.bucketing.enabled:
+            size = image_size or calib.size
+            prio = corr.ages[candidates] if corr.ages.size else None
+            keep = bucketing.select(corr.cur_left[candidates], size, cfg.bucketing, prio)
+            candidates = candidates[keep]
+        if candidates.size < max(cfg.pipeline.min_features, 4) or not dt > 0:
+            return self._fail(TrackingStatus.DEGENERATE, dt, used, 0, 0,
+                              f'{candidates.size} usable correspondences (need '
+                              f'{cfg.pipeline.min_features})' if dt > 0 else f'dt = {dt!r} s')
+        sub = corr.subset(candidates)
+        model = TransferModel(calib, sub.prev_left, sub.prev_right, dt, calib_cur)
+        z = np.hstack([sub.cur_left, sub.cur_right])  # (n, 4)
+        noise_var = cfg.filter.pixel_noise_px ** 2
+        hypotheses = 0
+        inl = np.ones(len(candidates), bool)
+        if cfg.ransac.enabled:
+            res = ransac(model, z, prior_mean, prior_cov, self.filter, noise_var, cfg.ransac,
+                         self.rng)
+            inl, hypotheses = res.inliers, res.hypotheses
+        if inl.sum() < cfg.pipeline.min_inliers:
+            return self._fail(TrackingStatus.TOO_FEW_INLIERS, dt, used, hypotheses, 0,
+                              f'{int(inl.sum())} inliers of {len(candidates)} (need '
+                              f'{cfg.pipeline.min_inliers})')
+        X = model.X[inl][None]
+        out = self.filter.update(prior_mean[None], prior_cov, BatchedMeasurement(model, X),
+                                 z[inl].reshape(1, -1), noise_var)
+        mean, cov, iters = out.mean[0], out.cov[0], int(out.iterations[0])
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+            return self._fail(TrackingStatus.DEGENERATE, dt, used, hypotheses, iters,
+                              'non-finite filter update')
+        speed = float(np.linalg.norm(mean[:3]))
+        if speed > cfg.pipeline.max_speed:
+            return self._fail(TrackingStatus.DEGENERATE, dt, used, hypotheses, iters,
+                              f'implausible speed {speed:.1f} m/s')
+        if cfg.ransac.enabled:
+            # Report the inliers of the final estimate (what the motion explains).
+            err = reprojection_errors(model, mean[None], z)[0]
+            inl = err < cfg.ransac.inlier_threshold_px
+        used[candidates[inl]] = True
+        self.mean, self.cov = mean, cov
+        return MotionEstimate(velocity=mean.copy(), covariance=cov.copy(),
+                              T_prev_cur=transform_from_velocity(mean, dt), inliers=used,
+                              iterations=iters, status=TrackingStatus.OK, hypotheses=hypotheses)
+
+    def _fail(self, status: TrackingStatus, dt: float, used: np.ndarray, hypotheses: int,
+              iters: int, why: str) -> MotionEstimate:
+        LOG.debug('motion estimate failed: %s (%s)', status.value, why)
+        self.coast()
+        T = transform_from_velocity(self.mean, dt) if dt > 0 else np.eye(4)
+        return MotionEstimate(velocity=self.mean.copy(), covariance=self.cov.copy(),
+                              T_prev_cur=T, inliers=used, iterations=iters, status=status,
+                              hypotheses=hypotheses, message=why)

@@ -1,0 +1,259 @@
+"""The images-to-odometry pipeline: one object, one call per stereo pair.
+
+``StereoOdometry(config).process(frame) -> OdometryResult`` runs
+
+    tracker (paper 2) -> bucketing -> RANSAC + ISPKF (paper 1) -> pose integration
+
+and handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
+inflated covariance for at most ``pipeline.max_lost_time_s``), calibration that changes between
+frames, gaps (the time step comes from the stamps) and stamps that do not increase. It imports
+no ROS; the node and the offline tools both drive it.
+
+Frames: ``world`` is the optical frame of the first left camera (x right, y down, z forward);
+``T_world_cam`` is the pose of the current left camera in it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from .camera import StereoCalibration
+from .config import Config
+from .errors import ImageError
+from .estimator import MotionEstimator
+from .motion import rotation_from_rates, transform_from_velocity, TransferModel
+from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
+from .tracker import StereoTracker
+
+LOG = logging.getLogger(__name__)
+
+#: A stamp this far (s) before the previous one means the input restarted (e.g. a looping bag).
+RESTART_JUMP_S = 1.0
+#: Position / angle variance (m^2, rad^2) added per second while LOST.
+LOST_VARIANCE_RATE = (1.0, np.deg2rad(10.0) ** 2)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Return the (3, 3) cross-product matrix of a 3-vector."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Adjoint (6, 6) of an SE(3) transform for twists ordered (translation, rotation)."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[:3, 3:] = skew(t) @ R
+    return A
+
+
+def validate_images(left: np.ndarray, right: np.ndarray, calib: StereoCalibration) -> None:
+    """Raise ImageError unless both images are 2-D, non-empty, equal and match the calibration."""
+    for img, name in ((left, 'left'), (right, 'right')):
+        if not isinstance(img, np.ndarray) or img.ndim != 2 or img.size == 0:
+            shape = getattr(img, 'shape', None)
+            raise ImageError(f'{name} image must be a non-empty 2-D grey array, got shape {shape}')
+        if img.dtype not in (np.uint8, np.uint16):
+            raise ImageError(f'{name} image must be uint8 or uint16, got {img.dtype}')
+    if left.shape != right.shape:
+        raise ImageError(f'left and right images differ in size: {left.shape[::-1]} vs '
+                         f'{right.shape[::-1]} (width, height)')
+    if (left.shape[1], left.shape[0]) != calib.size:
+        raise ImageError(f'image size {left.shape[1]}x{left.shape[0]} does not match the '
+                         f'calibration {calib.size[0]}x{calib.size[1]}')
+
+
+class StereoOdometry:
+    """Stereo visual odometry: feed stereo pairs, get poses.
+
+    Parameters
+    ----------
+    config : Config
+        The whole configuration (tracker, bucketing, filter, ransac, pipeline sections).
+
+    """
+
+    def __init__(self, config: Config | None = None) -> None:
+        self.config = config or Config()
+        self.tracker = StereoTracker(self.config.tracker, self.config.bucketing)
+        self.estimator = MotionEstimator(self.config)
+        self.reset()
+
+    # -- control -----------------------------------------------------------------------
+    def reset(self) -> None:
+        """Start over: identity pose, zero velocity, no features."""
+        self.T_world_cam = np.eye(4)
+        self.pose_cov = np.zeros((6, 6))
+        self._prev_stamp: float | None = None
+        self._prev_calib: StereoCalibration | None = None
+        self._lost_time = 0.0
+        self._last_dt = 0.1
+        self._status = TrackingStatus.INITIALIZING
+        self.tracker.reset()
+        self.estimator.reset()
+
+    def set_pose(self, T_world_cam: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        """Set the current pose (4, 4) in ``world`` and optionally its covariance (6, 6)."""
+        T = np.asarray(T_world_cam, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f'pose must be a finite 4x4 matrix, got shape {T.shape}')
+        self.T_world_cam = T.copy()
+        self.pose_cov = np.zeros((6, 6)) if covariance is None else \
+            np.asarray(covariance, np.float64).reshape(6, 6).copy()
+
+    def update_config(self, config: Config) -> None:
+        """Apply a new configuration (run-time changes of thresholds) without a reset."""
+        self.config = config
+        self.tracker.cfg = config.tracker
+        self.tracker.bucketing_cfg = config.bucketing
+        self.estimator.config = config
+
+    @property
+    def status(self) -> TrackingStatus:
+        """Status of the latest processed frame."""
+        return self._status
+
+    # -- per frame ---------------------------------------------------------------------
+    def process(self, frame: StereoFrame) -> OdometryResult:
+        """Process one stereo pair and return the integrated pose.
+
+        Raises
+        ------
+        ImageError
+            The images cannot be used with the frame's calibration (nothing changes then).
+
+        """
+        t_start = time.perf_counter()
+        calib = frame.calibration
+        validate_images(frame.left, frame.right, calib)
+        stamp = float(frame.stamp_s)
+        if not np.isfinite(stamp):
+            raise ImageError(f'stamp must be finite, got {stamp!r}')
+        prev_stamp, prev_calib = self._prev_stamp, self._prev_calib
+        if prev_stamp is not None and stamp < prev_stamp - RESTART_JUMP_S:
+            LOG.warning('stamp jumped back %.3f s: restarting odometry', prev_stamp - stamp)
+            self.reset()
+            prev_stamp = prev_calib = None
+        if prev_stamp is not None and stamp <= prev_stamp:
+            return self._result(stamp, self._status, t_start, {}, accepted=False,
+                                message=f'stamp {stamp:.9f} s not after {prev_stamp:.9f} s; '
+                                'frame ignored')
+        timings: dict[str, float] = {}
+        if prev_stamp is None:
+            self._track(frame, None, timings)
+            self._commit(stamp, calib, TrackingStatus.INITIALIZING)
+            return self._result(stamp, TrackingStatus.INITIALIZING, t_start, timings,
+                                message='first frame: features detected')
+        dt = stamp - prev_stamp
+        if dt > self.config.pipeline.max_gap_s:
+            LOG.warning('gap of %.3f s: velocity re-initialised', dt)
+            self.estimator.reset()
+        calib_changed = not calib.same_as(prev_calib)
+        if calib_changed:
+            LOG.info('calibration changed: features re-detected')
+            self.tracker.reset()
+        prior = None if calib_changed or self._lost_time > 0 else \
+            self._prior(prev_calib, calib, dt)
+        track = self._track(frame, prior, timings)
+        corr = track.correspondences if track is not None else None
+        t0 = time.perf_counter()
+        if corr is None or len(corr) == 0:
+            est = None
+            self.estimator.coast()
+        else:
+            est = self.estimator.estimate(corr, prev_calib, dt,
+                                          calib_cur=calib if calib_changed else None)
+        timings['estimate'] = (time.perf_counter() - t0) * 1e3
+        ok = est is not None and est.status is TrackingStatus.OK
+        if ok:
+            self._lost_time = 0.0
+            status = TrackingStatus.OK
+            message = ''
+        else:
+            self._lost_time += dt
+            status = est.status if est is not None else TrackingStatus.DEGENERATE
+            message = est.message if est is not None else 'no correspondences'
+            if calib_changed and est is None:
+                status, message = TrackingStatus.INITIALIZING, 'calibration changed'
+            if self._lost_time > self.config.pipeline.max_lost_time_s:
+                self.estimator.reset()
+                status = TrackingStatus.LOST
+                message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
+        self._integrate(dt, lost=status is TrackingStatus.LOST)
+        self._commit(stamp, calib, status)
+        return self._result(stamp, status, t_start, timings, corr=corr,
+                            inliers=est.inliers if est is not None else None,
+                            iterations=est.iterations if est is not None else 0,
+                            message=message)
+
+    # -- steps -------------------------------------------------------------------------
+    def _prior(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float):
+        """Constant-velocity prediction of the current pixels for the tracker (initial flow)."""
+        velocity = self.estimator.mean.copy()
+
+        def predict(prev_left: np.ndarray, prev_right: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+            if len(prev_left) == 0:
+                return prev_left.copy(), prev_right.copy()
+            pred = TransferModel(prev_calib, prev_left, prev_right, dt, calib).predict(velocity)
+            bad = ~np.all(np.isfinite(pred), axis=1)
+            pred[bad, :2] = prev_left[bad]
+            pred[bad, 2:] = prev_right[bad]
+            return pred[:, :2], pred[:, 2:]
+        return predict
+
+    def _track(self, frame: StereoFrame, prior, timings: dict[str, float]):
+        t0 = time.perf_counter()
+        track = self.tracker.track(frame.left, frame.right, frame.calibration, prior=prior)
+        timings['track'] = (time.perf_counter() - t0) * 1e3
+        stats = getattr(track, 'stats', None)
+        stage_ms = getattr(stats, 'timings_ms', None) if stats is not None else None
+        if isinstance(stage_ms, dict):
+            for key, value in stage_ms.items():
+                timings[f'track.{key}'] = float(value)
+        return track
+
+    def _integrate(self, dt: float, lost: bool) -> None:
+        """Move the pose by the filter's velocity and propagate the covariance."""
+        velocity, cov_v = self.estimator.mean, self.estimator.cov
+        T_prev_cur = transform_from_velocity(velocity, dt)
+        # Increment as a left perturbation in the previous camera frame: (t, rot) ~ dt * y.
+        cov_inc = cov_v * dt * dt
+        if lost:
+            cov_inc = cov_inc + np.diag([LOST_VARIANCE_RATE[0] * dt] * 3 +
+                                        [LOST_VARIANCE_RATE[1] * dt] * 3)
+        A = adjoint(self.T_world_cam)
+        self.pose_cov = self.pose_cov + A @ cov_inc @ A.T
+        self.pose_cov = 0.5 * (self.pose_cov + self.pose_cov.T)
+        self.T_world_cam = self.T_world_cam @ T_prev_cur
+        self._last_dt = dt
+
+    def _commit(self, stamp: float, calib: StereoCalibration, status: TrackingStatus) -> None:
+        self._prev_stamp = stamp
+        self._prev_calib = calib
+        self._status = status
+
+    def _result(self, stamp: float, status: TrackingStatus, t_start: float,
+                timings: dict[str, float], corr: Correspondences | None = None,
+                inliers: np.ndarray | None = None, iterations: int = 0, message: str = '',
+                accepted: bool = True) -> OdometryResult:
+        # Velocity in the CURRENT camera frame: rotate by the frame-to-frame rotation.
+        v = self.estimator.mean
+        R = rotation_from_rates(v[3:], self._last_dt)
+        Rb = np.zeros((6, 6))
+        Rb[:3, :3] = Rb[3:, 3:] = R.T
+        timings = dict(timings)
+        timings['total'] = (time.perf_counter() - t_start) * 1e3
+        n_tracked = len(corr) if corr is not None else 0
+        n_inl = int(np.count_nonzero(inliers)) if inliers is not None else 0
+        res = OdometryResult(
+            stamp_s=stamp, T_world_cam=self.T_world_cam.copy(),
+            pose_covariance=self.pose_cov.copy(),
+            velocity=Rb @ v, velocity_covariance=Rb @ self.estimator.cov @ Rb.T, status=status,
+            n_tracked=n_tracked, n_inliers=n_inl, iterations=iterations, timings_ms=timings,
+            message=message, features=corr, inliers=inliers, accepted=accepted)
+        return res

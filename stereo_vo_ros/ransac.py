@@ -1,0 +1,127 @@
+"""RANSAC outlier rejection (paper 1, section III-D).
+
+Minimal samples of ``s = 3`` correspondences; the number of samples follows eq. 14,
+``n = log(1 - p) / log(1 - (1 - eps)^s)``. Every sample gives a motion hypothesis from the filter
+update on its 3 correspondences (all hypotheses are solved in one batched update); inliers are
+correspondences whose Euclidean reprojection error is below a threshold in BOTH current images;
+the hypothesis with most inliers wins (ties: smaller summed inlier error), and the caller runs the
+final update on all of its inliers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import RansacConfig
+from .filters import Filter
+from .motion import TransferModel
+
+SAMPLE_SIZE = 3
+
+
+def num_samples(probability: float, outlier_ratio: float, sample_size: int = SAMPLE_SIZE,
+                max_samples: int | None = None) -> int:
+    """Eq. 14: samples needed so that one is outlier-free with the given probability."""
+    if outlier_ratio <= 0.0:
+        n = 1
+    else:
+        good = (1.0 - outlier_ratio) ** sample_size
+        n = 1 if good >= 1.0 else math.ceil(math.log(1.0 - probability) / math.log(1.0 - good))
+    n = max(n, 1)
+    return min(n, max_samples) if max_samples else n
+
+
+class BatchedMeasurement:
+    """h for B problems that each use their own correspondences (a subset of the frame's).
+
+    Parameters
+    ----------
+    model : TransferModel of the frame.
+    X : (B, n, 4) transfer vectors of each problem, or None for all of the frame's (shared).
+
+    """
+
+    def __init__(self, model: TransferModel, X: np.ndarray | None = None) -> None:
+        self.model = model
+        self.X = X
+
+    def __call__(self, states: np.ndarray) -> np.ndarray:
+        """Map states (B, S, 6) to predicted pixels (B, S, 4n)."""
+        pred = self.model.predict(states, self.X)
+        return pred.reshape(pred.shape[:2] + (-1,))
+
+    def subset(self, idx: np.ndarray) -> 'BatchedMeasurement':
+        """Return the measurement function of problems ``idx``."""
+        return BatchedMeasurement(self.model, None if self.X is None else self.X[idx])
+
+
+def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Euclidean reprojection error in the current images.
+
+    Parameters
+    ----------
+    model : TransferModel
+    states : (H, 6) hypotheses.
+    z : (N, 4) measured (u_L, v_L, u_R, v_R) pixels.
+
+    Returns
+    -------
+    (H, N) float64: the larger of the left and right image errors (pixels), inf when undefined.
+
+    """
+    pred = model.predict(states)  # (H, N, 4)
+    d = pred - z[None]
+    err = np.maximum(np.hypot(d[..., 0], d[..., 1]), np.hypot(d[..., 2], d[..., 3]))
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+@dataclass
+class RansacResult:
+    """Best hypothesis of a RANSAC run.
+
+    Attributes
+    ----------
+    inliers : (N,) bool inliers of the best hypothesis.
+    state : (6,) best hypothesis (m/s, rad/s).
+    hypotheses : int samples drawn.
+
+    """
+
+    inliers: np.ndarray
+    state: np.ndarray
+    hypotheses: int
+
+
+def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_cov: np.ndarray,
+           filt: Filter, noise_var: float, cfg: RansacConfig, rng: np.random.Generator
+           ) -> RansacResult:
+    """Select the inliers of the best 3-point hypothesis.
+
+    Parameters
+    ----------
+    model : TransferModel of the frame (N correspondences).
+    z : (N, 4) measured current pixels.
+    prior_mean, prior_cov : (6,), (6, 6) predicted state and covariance.
+    filt : the filter that turns a sample into a hypothesis.
+    noise_var : pixel noise variance (pixels^2).
+    cfg : RANSAC configuration.
+    rng : random generator (seeded by the caller for repeatable runs).
+
+    """
+    N = len(z)
+    n_hyp = num_samples(cfg.probability, cfg.outlier_ratio, SAMPLE_SIZE, cfg.max_hypotheses)
+    samples = np.argpartition(rng.random((n_hyp, N)), SAMPLE_SIZE - 1, axis=1)[:, :SAMPLE_SIZE]
+    X = model.X[samples]  # (H, 3, 4)
+    zs = z[samples].reshape(n_hyp, -1)  # (H, 12)
+    out = filt.update(np.broadcast_to(prior_mean, (n_hyp, 6)), prior_cov,
+                      BatchedMeasurement(model, X), zs, noise_var,
+                      max_iterations=cfg.hypothesis_iterations)
+    err = reprojection_errors(model, out.mean, z)  # (H, N)
+    inl = err < cfg.inlier_threshold_px
+    count = inl.sum(axis=1)
+    score = np.where(inl, err, 0.0).sum(axis=1)
+    best = int(np.lexsort((score, -count))[0])
+    return RansacResult(inliers=inl[best], state=out.mean[best], hypotheses=n_hyp)

@@ -1,0 +1,266 @@
+"""Paper 1 core: trifocal transfer, Euler convention, filters, RANSAC, calibration."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stereo_vo_ros.camera import StereoCalibration
+from stereo_vo_ros.config import Config
+from stereo_vo_ros.errors import CalibrationError
+from stereo_vo_ros.estimator import MotionEstimator
+from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, \
+    transform_from_velocity, TransferModel, velocity_from_transform
+from stereo_vo_ros.ransac import num_samples
+from stereo_vo_ros.records import Correspondences, TrackingStatus
+from stereo_vo_ros.trifocal import fundamental_from_projections, perpendicular_lines, \
+    tensor_basis, transfer_basis, transfer_points, trifocal_tensor
+
+FX, CX, CY, BASELINE = 718.856, 607.19, 185.22, 0.537
+
+
+def kitti_calibration():
+    P0 = np.array([[FX, 0, CX, 0], [0, FX, CY, 0], [0, 0, 1, 0]])
+    P1 = P0.copy()
+    P1[0, 3] = -FX * BASELINE
+    return StereoCalibration.from_projections(P0, P1, 1241, 376)
+
+
+def project(P, X):
+    h = X @ P[:, :3].T + P[:, 3]
+    return h[:, :2] / h[:, 2:]
+
+
+def random_scene(rng, n):
+    return np.column_stack([rng.uniform(-15, 15, n), rng.uniform(-3, 2, n),
+                            rng.uniform(5, 60, n)])
+
+
+def observe(calib, X_prev, T_prev_cur):
+    """Pixels of points (previous left frame) in the previous and current stereo pairs."""
+    Xc = (X_prev - T_prev_cur[:3, 3]) @ T_prev_cur[:3, :3]
+    PL, PR = calib.projection_left(), calib.projection_right()
+    return project(PL, X_prev), project(PR, X_prev), project(PL, Xc), project(PR, Xc)
+
+
+def random_pose(rng):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.05, 3)).as_matrix()
+    T[:3, 3] = rng.normal(0, 0.5, 3)
+    return T
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_transfer_matches_triangulate_and_reproject(seed):
+    rng = np.random.default_rng(seed)
+    # Three general cameras (not a rectified pair) looking at a random scene.
+    K = np.array([[700.0, 0, 320], [0, 710.0, 240], [0, 0, 1]])
+    P_A = K @ np.eye(3, 4)
+    T_B, T_C = random_pose(rng), random_pose(rng)
+    T_B[:3, 3] += [-0.5, 0, 0]
+    P_B = K @ np.linalg.inv(T_B)[:3]
+    P_C = K @ np.linalg.inv(T_C)[:3]
+    X = random_scene(rng, 50)
+    x_A, x_B, x_C = project(P_A, X), project(P_B, X), project(P_C, X)
+    T = trifocal_tensor(P_A, P_B, P_C)
+    lines = perpendicular_lines(fundamental_from_projections(P_A, P_B), x_A, x_B)
+    # Lines pass through x_B.
+    assert np.abs(np.sum(lines[:, :2] * x_B, axis=1) + lines[:, 2]).max() < 1e-6 * np.abs(
+        lines).max()
+    np.testing.assert_allclose(transfer_points(T, x_A, lines), x_C, atol=1e-9)
+    # The factored form used by the estimator is eq. 4 + eq. 5 exactly.
+    G = tensor_basis(P_A, P_B)
+    np.testing.assert_allclose(np.einsum('iqk,rk->iqr', G, P_C), T, rtol=1e-9,
+                               atol=1e-9 * np.abs(T).max())
+    Xh = transfer_basis(G, x_A, lines)
+    np.testing.assert_allclose(project(P_C, Xh[:, :3] / Xh[:, 3:]), x_C, atol=1e-9)
+
+
+def test_euler_convention_round_trip():
+    rng = np.random.default_rng(1)
+    omega = rng.uniform(-1.0, 1.0, (100, 3))
+    dt = 0.1
+    R = rotation_from_rates(omega, dt)
+    # Eq. 6: R = R_Z(theta) R_X(phi) R_Y(psi): SciPy's intrinsic 'ZXY' sequence.
+    a = omega * dt
+    ref = Rotation.from_euler('ZXY', np.column_stack([a[:, 2], a[:, 0], a[:, 1]])).as_matrix()
+    np.testing.assert_allclose(R, ref, atol=1e-12)
+    for w, Ri in zip(omega, R):
+        np.testing.assert_allclose(rates_from_rotation(Ri, dt), w, atol=1e-10)
+    y = np.concatenate([rng.normal(0, 5, 3), omega[0]])
+    np.testing.assert_allclose(velocity_from_transform(transform_from_velocity(y, dt), dt), y,
+                               atol=1e-10)
+
+
+def test_measurement_function_predicts_exact_pixels():
+    rng = np.random.default_rng(2)
+    calib = kitti_calibration()
+    y = np.array([0.3, -0.1, 10.0, 0.02, 0.1, -0.03])
+    pl, pr, cl, cr = observe(calib, random_scene(rng, 80), transform_from_velocity(y, 0.1))
+    pred = TransferModel(calib, pl, pr, 0.1).predict(y)
+    np.testing.assert_allclose(pred[:, :2], cl, atol=1e-8)
+    np.testing.assert_allclose(pred[:, 2:], cr, atol=1e-8)
+
+
+def _config(filter_type, **extra):
+    values = {'filter.type': filter_type, 'ransac.enabled': False,
+              'filter.threshold_velocity': 1e-6, 'filter.threshold_angular_deg': 1e-6,
+              'filter.max_iterations': 200}
+    values.update(extra)
+    return Config().replace(**values)
+
+
+@pytest.mark.parametrize('filter_type', ['ispkf', 'iekf'])
+def test_iterated_filters_converge_on_noiseless_data(filter_type):
+    rng = np.random.default_rng(3)
+    calib = kitti_calibration()
+    y = np.array([0.4, -0.2, 12.0, 0.05, 0.2, -0.04])
+    corr = Correspondences(*observe(calib, random_scene(rng, 150),
+                                    transform_from_velocity(y, 0.1)))
+    # Default (vague) prior from zero velocity; noiseless data with a small assumed noise.
+    est = MotionEstimator(_config(filter_type, **{'filter.pixel_noise_px': 0.01}))
+    res = est.estimate(corr, calib, 0.1)
+    assert res.status is TrackingStatus.OK
+    np.testing.assert_allclose(res.velocity, y, atol=1e-6)
+    assert res.iterations < 20
+    assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+@pytest.mark.parametrize('filter_type', ['ukf', 'ekf'])
+def test_single_step_filters_converge_over_frames(filter_type):
+    rng = np.random.default_rng(4)
+    calib = kitti_calibration()
+    y = np.array([0.1, 0.0, 8.0, 0.01, 0.05, 0.0])
+    # A constant motion: small process noise, so the filter can settle on it.
+    est = MotionEstimator(_config(filter_type, **{'filter.velocity_process_noise': 0.05,
+                                                  'filter.angular_process_noise_deg': 0.5}))
+    for _ in range(15):
+        corr = Correspondences(*observe(calib, random_scene(rng, 100),
+                                        transform_from_velocity(y, 0.1)))
+        res = est.estimate(corr, calib, 0.1)
+    np.testing.assert_allclose(res.velocity, y, atol=1e-3)
+
+
+def test_ransac_recovers_motion_with_half_outliers():
+    rng = np.random.default_rng(5)
+    calib = kitti_calibration()
+    y = np.array([-0.2, 0.1, 9.0, -0.01, 0.08, 0.02])
+    pl, pr, cl, cr = observe(calib, random_scene(rng, 200), transform_from_velocity(y, 0.1))
+    outlier = rng.random(200) < 0.5
+    cl = cl.copy()
+    cl[outlier] += rng.uniform(5, 40, (outlier.sum(), 2)) * rng.choice([-1, 1], (outlier.sum(), 2))
+    noise = 0.3
+    corr = Correspondences(pl, pr, cl + rng.normal(0, noise, cl.shape),
+                           cr + rng.normal(0, noise, cr.shape))
+    cfg = Config().replace(**{'bucketing.enabled': False, 'ransac.outlier_ratio': 0.5})
+    res = MotionEstimator(cfg).estimate(corr, calib, 0.1)
+    assert res.status is TrackingStatus.OK
+    assert res.hypotheses == num_samples(0.99, 0.5, 3, cfg.ransac.max_hypotheses)
+    np.testing.assert_allclose(res.velocity[:3], y[:3], atol=0.1)
+    np.testing.assert_allclose(res.velocity[3:], y[3:], atol=2e-3)
+    assert not np.any(res.inliers & outlier)
+    assert np.count_nonzero(res.inliers & ~outlier) > 0.9 * np.count_nonzero(~outlier)
+    # Without RANSAC the same data gives a visibly wrong motion.
+    bad = MotionEstimator(cfg.replace(**{'ransac.enabled': False})).estimate(corr, calib, 0.1)
+    assert np.abs(bad.velocity - y).max() > 2 * np.abs(res.velocity - y).max()
+
+
+def test_num_samples_eq14():
+    assert num_samples(0.99, 0.5, 3) == 35
+    assert num_samples(0.99, 0.2, 3) == 7
+    assert num_samples(0.99, 0.0, 3) == 1
+    assert num_samples(0.999, 0.5, 3, max_samples=10) == 10
+
+
+def _camera_info(K, D, R, P, w, h):
+    return {'k': K.ravel().tolist(), 'd': list(D), 'r': R.ravel().tolist(),
+            'p': P.ravel().tolist(), 'width': w, 'height': h}
+
+
+def test_raw_calibration_matches_rectified_equivalent():
+    rng = np.random.default_rng(6)
+    w, h = 752, 480
+    K1 = np.array([[458.0, 0, 367.0], [0, 457.0, 248.0], [0, 0, 1]])
+    K2 = np.array([[457.0, 0, 379.0], [0, 456.0, 255.0], [0, 0, 1]])
+    D1 = np.array([-0.28, 0.07, 0.0002, 0.00002, 0.0])
+    D2 = np.array([-0.28, 0.07, -0.0001, -0.00005, 0.0])
+    R_rl = Rotation.from_rotvec([0.003, -0.01, 0.002]).as_matrix()
+    t_rl = np.array([-0.11, 0.0004, -0.0008])
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(K1, D1, K2, D2, (w, h), R_rl, t_rl.reshape(3, 1),
+                                          alpha=0)
+    raw = StereoCalibration.from_camera_info(_camera_info(K1, D1, R1, P1, w, h),
+                                             _camera_info(K2, D2, R2, P2, w, h), 'raw')
+    np.testing.assert_allclose(raw.R_right_left, R_rl, atol=1e-9)
+    np.testing.assert_allclose(raw.t_right_left, t_rl, atol=1e-9)
+    rect = StereoCalibration.from_camera_info(_camera_info(P1[:, :3], [0] * 5, np.eye(3), P1, w, h),
+                                              _camera_info(P2[:, :3], [0] * 5, np.eye(3), P2, w, h))
+    # Scene and motion in the raw left camera frame.
+    X = np.column_stack([rng.uniform(-3, 3, 150), rng.uniform(-2, 2, 150), rng.uniform(2, 12, 150)])
+    y = np.array([0.3, 0.1, 1.5, 0.05, -0.1, 0.02])
+    T = transform_from_velocity(y, 0.05)
+    Xc = (X - T[:3, 3]) @ T[:3, :3]
+
+    def raw_pixels(Xl, K, D, R, t):
+        pts, _ = cv2.projectPoints(Xl @ R.T + t, np.zeros(3), np.zeros(3), K, D)
+        return pts.reshape(-1, 2)
+    I3, z3 = np.eye(3), np.zeros(3)
+    raw_obs = [raw_pixels(X, K1, D1, I3, z3), raw_pixels(X, K2, D2, R_rl, t_rl),
+               raw_pixels(Xc, K1, D1, I3, z3), raw_pixels(Xc, K2, D2, R_rl, t_rl)]
+    # Keep what a tracker could see: points well inside all four images.
+    inside = np.all([(o[:, 0] > 20) & (o[:, 0] < w - 20) & (o[:, 1] > 20) & (o[:, 1] < h - 20)
+                     for o in raw_obs], axis=0)
+    assert inside.sum() > 60
+    X, Xc = X[inside], Xc[inside]
+    raw_obs = [o[inside] for o in raw_obs]
+    und = [raw.undistort_left(raw_obs[0]), raw.undistort_right(raw_obs[1]),
+           raw.undistort_left(raw_obs[2]), raw.undistort_right(raw_obs[3])]
+    # Distort/undistort round trip.
+    np.testing.assert_allclose(raw.distort_left(und[0]), raw_obs[0], atol=1e-3)
+    cfg = _config('ispkf', **{'filter.initial_velocity_std': 100.0})
+    res_raw = MotionEstimator(cfg).estimate(Correspondences(*und), raw, 0.05)
+    # Rectified equivalent: the same scene in the rectified left frame.
+    Xr, Xcr = X @ R1.T, Xc @ R1.T
+    rect_obs = [project(P1, Xr), project(P2, Xr), project(P1, Xcr), project(P2, Xcr)]
+    res_rect = MotionEstimator(cfg).estimate(Correspondences(*rect_obs), rect, 0.05)
+    assert res_raw.status is res_rect.status is TrackingStatus.OK
+    T_raw_in_rect = np.eye(4)
+    T_raw_in_rect[:3, :3] = R1
+    expected = T_raw_in_rect @ res_raw.T_prev_cur @ np.linalg.inv(T_raw_in_rect)
+    np.testing.assert_allclose(res_rect.T_prev_cur, expected, atol=2e-4)
+    np.testing.assert_allclose(res_raw.T_prev_cur, T, atol=2e-4)
+    # The epipolar distance of true raw correspondences is ~0 after undistortion.
+    assert raw.epipolar_distance(und[0], und[1]).max() < 1e-3
+
+
+def _pinhole(fx=500.0, tx=-50.0, w=640, h=480):
+    P = [[fx, 0, 320, tx], [0, fx, 240, 0], [0, 0, 1, 0]]
+    K = [[fx, 0, 320], [0, fx, 240], [0, 0, 1]]
+    return {'k': np.ravel(K).tolist(), 'd': [0.0] * 5, 'r': np.eye(3).ravel().tolist(),
+            'p': np.ravel(P).tolist(), 'width': w, 'height': h}
+
+
+@pytest.mark.parametrize('right, match', [
+    (dict(fx=float('nan')), 'non-finite'),
+    (dict(fx=0.0), 'focal length must be positive'),
+    (dict(fx=-10.0), 'focal length must be positive'),
+    (dict(tx=0.0), 'baseline must be positive'),
+    (dict(tx=50.0), 'right camera must be to the right'),
+    (dict(w=320), 'sizes differ'),
+    (dict(w=0), 'size must be positive'),
+])
+def test_invalid_calibration_rejected(right, match):
+    left = _pinhole(tx=0.0)
+    with pytest.raises(CalibrationError, match=match):
+        StereoCalibration.from_camera_info(left, _pinhole(**right))
+
+
+def test_invalid_calibration_messages_name_values():
+    left = _pinhole(tx=0.0)
+    bad = _pinhole()
+    bad['p'] = bad['p'][:10]
+    with pytest.raises(CalibrationError, match="'p' must have 12 values, got 10"):
+        StereoCalibration.from_camera_info(left, bad)
+    raw = _pinhole()
+    raw['r'] = [0.0] * 9
+    with pytest.raises(CalibrationError, match='right R is not a rotation'):
+        StereoCalibration.from_camera_info(_pinhole(tx=0.0), raw, 'raw')
