@@ -1,4 +1,5 @@
-"""Bucketing (paper 1, section III-C): keep at most k features per cell of a grid over a ROI.
+"""
+Bucketing (paper 1, section III-C): keep at most k features per cell of a grid over a ROI.
 
 The region of interest is the image minus a margin; the ROI is divided into ``rows x cols``
 non-overlapping rectangles and in each at most ``max_per_bucket`` features are kept, the best
@@ -13,7 +14,8 @@ from .config import BucketingConfig
 
 
 def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig) -> np.ndarray:
-    """Return the bucket index of each point, -1 outside the region of interest.
+    """
+    Return the bucket index of each point, -1 outside the region of interest.
 
     Parameters
     ----------
@@ -42,7 +44,8 @@ def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig
 
 def select(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig,
            priority: np.ndarray | None = None, max_per_bucket: int | None = None) -> np.ndarray:
-    """Select features by bucketing.
+    """
+    Select features by bucketing.
 
     Parameters
     ----------

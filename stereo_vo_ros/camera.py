@@ -1,4 +1,5 @@
-"""Stereo camera model and calibration, built from the fields of two ``CameraInfo`` messages.
+"""
+Stereo camera model and calibration, built from the fields of two ``CameraInfo`` messages.
 
 Two input kinds are supported:
 
@@ -29,7 +30,8 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-1
 
 @dataclass(frozen=True)
 class CameraModel:
-    """One camera as a ``sensor_msgs/CameraInfo`` describes it.
+    """
+    One camera as a ``sensor_msgs/CameraInfo`` describes it.
 
     Attributes
     ----------
@@ -52,7 +54,8 @@ class CameraModel:
 
     @classmethod
     def from_fields(cls, info: Mapping[str, Any] | Any, name: str = 'camera') -> 'CameraModel':
-        """Build from a CameraInfo message or a mapping with k, d, r, p, width, height.
+        """
+        Build from a CameraInfo message or a mapping with k, d, r, p, width, height.
 
         Accepts both the ROS 2 field names (``k``, ``d``, ``r``, ``p``) and upper-case ones.
         """
@@ -101,7 +104,8 @@ def _check_rotation(R: np.ndarray, what: str) -> None:
 
 @dataclass(frozen=True)
 class StereoCalibration:
-    """Calibrated stereo pair in the form the estimator and the tracker use.
+    """
+    Calibrated stereo pair in the form the estimator and the tracker use.
 
     Attributes
     ----------
@@ -133,7 +137,8 @@ class StereoCalibration:
     @classmethod
     def from_camera_info(cls, left: Any, right: Any, kind: str = 'rectified'
                          ) -> 'StereoCalibration':
-        """Build and validate from two CameraInfo messages (or mappings of their fields).
+        """
+        Build and validate from two CameraInfo messages (or mappings of their fields).
 
         Raises
         ------
@@ -220,7 +225,8 @@ class StereoCalibration:
         return np.linalg.inv(self.K_right).T @ tx @ self.R_right_left @ np.linalg.inv(self.K_left)
 
     def epipolar_distance(self, x_left: np.ndarray, x_right: np.ndarray) -> np.ndarray:
-        """Distance (pixels) of right points to the epipolar lines of left points.
+        """
+        Distance (pixels) of right points to the epipolar lines of left points.
 
         For rectified input this is ``|y_left - y_right|`` (eq. 6 of paper 2). Inputs are
         (N, 2) ideal pixel coordinates; returns (N,) float64.

@@ -1,4 +1,5 @@
-"""One typed configuration for every part of the pipeline, online and offline.
+"""
+One typed configuration for every part of the pipeline, online and offline.
 
 The configuration is a tree of dataclasses (one section per component). It is loaded from a
 YAML file in the ROS 2 parameter form::
@@ -328,7 +329,8 @@ def from_flat(params: dict[str, Any]) -> Config:
 
 
 def load(path: str | Path | None = None) -> Config:
-    """Load a Config from a YAML file (ROS 2 params form or plain nested form).
+    """
+    Load a Config from a YAML file (ROS 2 params form or plain nested form).
 
     ``None`` gives the defaults. Accepts ``{node_name or '/**': {'ros__parameters': {...}}}``
     (the first node entry is used) or the plain nested sections.
@@ -374,3 +376,20 @@ def to_yaml(cfg: Config | None = None, node: str = '/**') -> str:
             dumped = dumped.strip().removesuffix('...').strip()
             lines.append(f'      {f.name}: {dumped}')
     return '\n'.join(lines) + '\n'
+
+
+def main() -> None:
+    """Print the default configuration as a ROS 2 parameter file (config/stereo_vo.yaml)."""
+    import sys
+    sys.stdout.write(HEADER + to_yaml())
+
+
+HEADER = """\
+# stereo_vo_ros parameters: one file for the node (ros2 run/launch --params-file) and the
+# offline tools (stereo_vo run --config). Generated from stereo_vo_ros/config.py by
+# `python -m stereo_vo_ros.config > config/stereo_vo.yaml`; a test keeps the two in step.
+"""
+
+
+if __name__ == '__main__':
+    main()

@@ -1,4 +1,5 @@
-"""Exception hierarchy of stereo_vo_ros.
+"""
+Exception hierarchy of stereo_vo_ros.
 
 Library code raises these; only the command line turns them into an exit code and only the ROS
 node turns them into a log line, a diagnostics status and a lost tracking state. Messages name

@@ -1,4 +1,5 @@
-"""Frame-to-frame egomotion from stereo correspondences (paper 1, section III).
+"""
+Frame-to-frame egomotion from stereo correspondences (paper 1, section III).
 
 :class:`MotionEstimator` holds the filter state (the velocity and its covariance) and, for each
 new set of correspondences between the previous and the current stereo pair, runs
@@ -30,7 +31,8 @@ LOG = logging.getLogger(__name__)
 
 
 class MotionEstimator:
-    """Egomotion filter: the state and its update from correspondences.
+    """
+    Egomotion filter: the state and its update from correspondences.
 
     Parameters
     ----------
@@ -87,7 +89,8 @@ class MotionEstimator:
     def estimate(self, corr: Correspondences, calib: StereoCalibration, dt: float,
                  calib_cur: StereoCalibration | None = None,
                  image_size: tuple[int, int] | None = None) -> MotionEstimate:
-        """Estimate the motion between the previous and the current pair.
+        """
+        Estimate the motion between the previous and the current pair.
 
         Parameters
         ----------

@@ -1,4 +1,5 @@
-"""Kalman filter updates for the 6-D egomotion state (paper 1, section III-E).
+"""
+Kalman filter updates for the 6-D egomotion state (paper 1, section III-E).
 
 Four filters behind one interface (:class:`Filter`), all batched over B independent problems
 (RANSAC hypotheses are solved side by side):
@@ -52,7 +53,8 @@ _EPS_JACOBIAN = 1e-6
 
 @dataclass
 class FilterOutput:
-    """Posterior of a batched update.
+    """
+    Posterior of a batched update.
 
     Attributes
     ----------
@@ -81,7 +83,8 @@ class Filter(Protocol):
 
 def _linearize_sigma(x: np.ndarray, L: np.ndarray, h: MeasurementFn, w0: float
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Propagate x +/- columns of L through h; return (z_bar (B,M), H (B,M,6)).
+    """
+    Propagate x +/- columns of L through h; return (z_bar (B,M), H (B,M,6)).
 
     ``L`` (B, 6, 6) holds the sigma-point offsets as columns. ``H`` is the regression
     Jacobian ``P_xz^T P^-1``, which for a symmetric sigma set is the central difference of h
@@ -121,7 +124,8 @@ def _linearize_point(x: np.ndarray, h: MeasurementFn) -> tuple[np.ndarray, np.nd
 
 
 def safe_cholesky(C: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factors of symmetric (B, n, n) covariances, robust to round-off.
+    """
+    Lower Cholesky factors of symmetric (B, n, n) covariances, robust to round-off.
 
     Falls back to an eigen-decomposition with eigenvalues clipped to a tiny positive floor for
     the matrices that are not numerically positive definite.
@@ -172,7 +176,8 @@ class _BaseFilter:
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
                noise_var: float, max_iterations: int | None = None) -> FilterOutput:
-        """Update B priors with measurements; see the module docstring for the equations.
+        """
+        Update B priors with measurements; see the module docstring for the equations.
 
         Parameters
         ----------

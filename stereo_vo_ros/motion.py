@@ -1,4 +1,5 @@
-"""Motion parameterisation (paper 1, eqs. 6-8) and the trifocal measurement function h(y).
+"""
+Motion parameterisation (paper 1, eqs. 6-8) and the trifocal measurement function h(y).
 
 State ``y = (V_X, V_Y, V_Z, w_X, w_Y, w_Z)``: linear (m/s) and angular (rad/s) velocity of the
 stereo rig, expressed in the PREVIOUS LEFT camera optical frame (x right, y down, z forward).
@@ -78,7 +79,8 @@ _PAIR_CACHE: dict[int, tuple[StereoCalibration, np.ndarray, np.ndarray]] = {}
 
 
 def _pair_geometry(calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
-    """Tensor basis G (3, 3, 4) and fundamental matrix F of the (previous) stereo pair.
+    """
+    Tensor basis G (3, 3, 4) and fundamental matrix F of the (previous) stereo pair.
 
     Both depend on the calibration only, so they are computed once per calibration object.
     """
@@ -94,7 +96,8 @@ def _pair_geometry(calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
 
 
 class TransferModel:
-    """Measurement function h(y) of paper 1 for one frame pair.
+    """
+    Measurement function h(y) of paper 1 for one frame pair.
 
     Parameters
     ----------
@@ -132,7 +135,8 @@ class TransferModel:
         return len(self.X)
 
     def cameras(self, y: np.ndarray) -> np.ndarray:
-        """Return the stacked current left and right projections (..., 6, 4) for states y.
+        """
+        Return the stacked current left and right projections (..., 6, 4) for states y.
 
         Rows 0-2 are ``P_C`` (current left), rows 3-5 ``P_D`` (current right), both mapping
         points of the previous left camera frame to pixels.
@@ -150,7 +154,8 @@ class TransferModel:
         return M
 
     def predict(self, y: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
-        """Predict current pixels for states ``y``.
+        """
+        Predict current pixels for states ``y``.
 
         Parameters
         ----------

@@ -1,4 +1,5 @@
-"""The images-to-odometry pipeline: one object, one call per stereo pair.
+"""
+The images-to-odometry pipeline: one object, one call per stereo pair.
 
 ``StereoOdometry(config).process(frame) -> OdometryResult`` runs
 
@@ -68,7 +69,8 @@ def validate_images(left: np.ndarray, right: np.ndarray, calib: StereoCalibratio
 
 
 class StereoOdometry:
-    """Stereo visual odometry: feed stereo pairs, get poses.
+    """
+    Stereo visual odometry: feed stereo pairs, get poses.
 
     Parameters
     ----------
@@ -119,7 +121,8 @@ class StereoOdometry:
 
     # -- per frame ---------------------------------------------------------------------
     def process(self, frame: StereoFrame) -> OdometryResult:
-        """Process one stereo pair and return the integrated pose.
+        """
+        Process one stereo pair and return the integrated pose.
 
         Raises
         ------

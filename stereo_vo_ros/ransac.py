@@ -1,4 +1,5 @@
-"""RANSAC outlier rejection (paper 1, section III-D).
+"""
+RANSAC outlier rejection (paper 1, section III-D).
 
 Minimal samples of ``s = 3`` correspondences; the number of samples follows eq. 14,
 ``n = log(1 - p) / log(1 - (1 - eps)^s)``. Every sample gives a motion hypothesis from the filter
@@ -35,7 +36,8 @@ def num_samples(probability: float, outlier_ratio: float, sample_size: int = SAM
 
 
 class BatchedMeasurement:
-    """h for B problems that each use their own correspondences (a subset of the frame's).
+    """
+    h for B problems that each use their own correspondences (a subset of the frame's).
 
     Parameters
     ----------
@@ -59,7 +61,8 @@ class BatchedMeasurement:
 
 
 def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Euclidean reprojection error in the current images.
+    """
+    Euclidean reprojection error in the current images.
 
     Parameters
     ----------
@@ -80,7 +83,8 @@ def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray)
 
 @dataclass
 class RansacResult:
-    """Best hypothesis of a RANSAC run.
+    """
+    Best hypothesis of a RANSAC run.
 
     Attributes
     ----------
@@ -98,7 +102,8 @@ class RansacResult:
 def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_cov: np.ndarray,
            filt: Filter, noise_var: float, cfg: RansacConfig, rng: np.random.Generator
            ) -> RansacResult:
-    """Select the inliers of the best 3-point hypothesis.
+    """
+    Select the inliers of the best 3-point hypothesis.
 
     Parameters
     ----------

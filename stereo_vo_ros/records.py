@@ -1,4 +1,5 @@
-"""Records passed between the stages: stereo frames in, motion and odometry out.
+"""
+Records passed between the stages: stereo frames in, motion and odometry out.
 
 Frames and units used throughout the package:
 
@@ -33,7 +34,8 @@ class TrackingStatus(enum.Enum):
 
 @dataclass(frozen=True)
 class StereoFrame:
-    """One synchronised stereo pair.
+    """
+    One synchronised stereo pair.
 
     Attributes
     ----------
@@ -54,7 +56,8 @@ class StereoFrame:
 
 @dataclass
 class Correspondences:
-    """Stereo correspondences between the previous and the current pair.
+    """
+    Stereo correspondences between the previous and the current pair.
 
     Every array has N rows, one per feature; pixel coordinates are (x right, y down), float64,
     in the undistorted (ideal pinhole) image of the camera named.
@@ -80,7 +83,8 @@ class Correspondences:
 
 @dataclass
 class MotionEstimate:
-    """Frame-to-frame egomotion from the estimator (paper 1).
+    """
+    Frame-to-frame egomotion from the estimator (paper 1).
 
     Attributes
     ----------
@@ -115,7 +119,8 @@ class MotionEstimate:
 
 @dataclass
 class OdometryResult:
-    """What the pipeline returns for every stereo pair.
+    """
+    What the pipeline returns for every stereo pair.
 
     Attributes
     ----------

@@ -1,4 +1,5 @@
-"""Trifocal tensor (paper 1, eq. 4) and point-line-point transfer (eq. 5).
+"""
+Trifocal tensor (paper 1, eq. 4) and point-line-point transfer (eq. 5).
 
 Index conventions follow Hartley & Zisserman: ``T[i, j, k] = T_i^{jk}`` for cameras A, B, C with
 projection matrices ``P_A, P_B, P_C`` (3x4, pixels). A correspondence ``x_A <-> x_B`` is
@@ -24,7 +25,8 @@ def _rows_without(P: np.ndarray, i: int) -> np.ndarray:
 
 
 def trifocal_tensor(P_A: np.ndarray, P_B: np.ndarray, P_C: np.ndarray) -> np.ndarray:
-    """Return the trifocal tensor of three cameras by eq. 4 (determinants).
+    """
+    Return the trifocal tensor of three cameras by eq. 4 (determinants).
 
     ``T_i^{qr} = (-1)^(i+1) det([~a_i; b_q; c_r])`` with ``~a_i`` = P_A without row i.
 
@@ -50,7 +52,8 @@ def trifocal_tensor(P_A: np.ndarray, P_B: np.ndarray, P_C: np.ndarray) -> np.nda
 
 
 def tensor_basis(P_A: np.ndarray, P_B: np.ndarray) -> np.ndarray:
-    """Return ``G`` (3, 3, 4) with ``T_i^{qr} = G[i, q] . P_C[r]`` for every third camera.
+    """
+    Return ``G`` (3, 3, 4) with ``T_i^{qr} = G[i, q] . P_C[r]`` for every third camera.
 
     ``G[i, q]`` is ``(-1)^(i+1)`` times the cofactor vector of the last row of the 4x4 matrix
     ``[~a_i; b_q; c]``, i.e. eq. 4 expanded along the row of ``P_C``.
@@ -78,7 +81,8 @@ def fundamental_from_projections(P_A: np.ndarray, P_B: np.ndarray) -> np.ndarray
 
 
 def perpendicular_lines(F: np.ndarray, x_A: np.ndarray, x_B: np.ndarray) -> np.ndarray:
-    """Lines through ``x_B`` perpendicular to the epipolar lines ``F x_A`` (H&Z Alg. 15.1).
+    """
+    Lines through ``x_B`` perpendicular to the epipolar lines ``F x_A`` (H&Z Alg. 15.1).
 
     Parameters
     ----------
@@ -98,7 +102,8 @@ def perpendicular_lines(F: np.ndarray, x_A: np.ndarray, x_B: np.ndarray) -> np.n
 
 
 def transfer_points(T: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarray:
-    """Point-line-point transfer, eq. 5: ``x_C^k = x_A^i l_{B,j} T_i^{jk}``.
+    """
+    Point-line-point transfer, eq. 5: ``x_C^k = x_A^i l_{B,j} T_i^{jk}``.
 
     Parameters
     ----------
@@ -117,7 +122,8 @@ def transfer_points(T: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarr
 
 
 def transfer_basis(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarray:
-    """Contract eq. 5 with the tensor basis: ``X_n = x_A^i l_{B,j} G[i, j]``.
+    """
+    Contract eq. 5 with the tensor basis: ``X_n = x_A^i l_{B,j} G[i, j]``.
 
     Parameters
     ----------

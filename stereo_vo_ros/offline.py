@@ -1,0 +1,110 @@
+"""
+Offline runs: drive the pipeline over a sequence and summarise what happened.
+
+Used by ``stereo_vo run`` and the benchmarks; no ROS, no argparse, no progress bar (the caller
+passes a callback).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import time
+from typing import Callable, Iterable
+
+import numpy as np
+
+from .config import Config
+from .pipeline import StereoOdometry
+from .records import OdometryResult, StereoFrame, TrackingStatus
+
+
+@dataclass
+class RunOutput:
+    """
+    Trajectory and per-frame records of one run.
+
+    Attributes
+    ----------
+    stamps : (N,) float64 stamps (s) of the accepted frames.
+    poses : (N, 4, 4) float64 ``T_world_cam`` of the left camera in the first left camera frame.
+    statuses : list of TrackingStatus, one per accepted frame.
+    timings : list of dict of milliseconds per stage, one per accepted frame (image loading
+        excluded).
+    results : the OdometryResult records when ``keep_results`` was set, else empty.
+
+    """
+
+    stamps: np.ndarray
+    poses: np.ndarray
+    statuses: list
+    timings: list
+    results: list = field(default_factory=list)
+
+
+def run_frames(frames: Iterable[StereoFrame], config: Config, max_frames: int | None = None,
+               progress: Callable[[OdometryResult], None] | None = None,
+               keep_results: bool = False) -> RunOutput:
+    """Run the pipeline over frames; ignored frames (non-increasing stamps) are left out."""
+    vo = StereoOdometry(config)
+    stamps, poses, statuses, timings, results = [], [], [], [], []
+    for i, frame in enumerate(frames):
+        if max_frames is not None and i >= max_frames:
+            break
+        res = vo.process(frame)
+        if progress is not None:
+            progress(res)
+        if not res.accepted:
+            continue
+        stamps.append(res.stamp_s)
+        poses.append(res.T_world_cam)
+        statuses.append(res.status)
+        timings.append(res.timings_ms)
+        if keep_results:
+            results.append(res)
+    return RunOutput(np.asarray(stamps, np.float64),
+                     np.asarray(poses, np.float64).reshape(-1, 4, 4), statuses, timings,
+                     results)
+
+
+def summarize_ms(values: Iterable[float]) -> dict[str, float]:
+    """Return mean, median and 95th percentile (ms) of a sequence of timings."""
+    v = np.asarray(list(values), np.float64)
+    if v.size == 0:
+        return {'mean': float('nan'), 'median': float('nan'), 'p95': float('nan')}
+    return {'mean': float(v.mean()), 'median': float(np.median(v)),
+            'p95': float(np.percentile(v, 95))}
+
+
+def run_stats(out: RunOutput, wall_s: float | None = None) -> dict:
+    """
+    Stats JSON of a run.
+
+    ``{"frames": N, "lost_frames": N, "statuses": {...}, "ms": {"total": {"mean", "median",
+    "p95"}, "<stage>": {...}}}``; the first frame (detection only) is left out of the timings.
+    """
+    stages: dict[str, list[float]] = {}
+    for t in out.timings[1:]:
+        for key, value in t.items():
+            stages.setdefault(key, []).append(value)
+    counts: dict[str, int] = {}
+    for s in out.statuses:
+        counts[s.value] = counts.get(s.value, 0) + 1
+    lost = sum(1 for s in out.statuses if s not in (TrackingStatus.OK,
+                                                     TrackingStatus.INITIALIZING))
+    stats = {'frames': len(out.statuses), 'lost_frames': lost, 'statuses': counts,
+             'ms': {key: summarize_ms(v) for key, v in sorted(stages.items())}}
+    if wall_s is not None:
+        stats['wall_s'] = wall_s
+    return stats
+
+
+class Stopwatch:
+    """Context manager measuring wall time in seconds (``.seconds``)."""
+
+    def __enter__(self) -> 'Stopwatch':
+        self._t0 = time.perf_counter()
+        self.seconds = 0.0
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.seconds = time.perf_counter() - self._t0

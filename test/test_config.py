@@ -1,0 +1,65 @@
+"""The one typed configuration: loading, validation, and the shipped YAML."""
+
+from pathlib import Path
+
+import pytest
+
+from stereo_vo_ros import config as config_mod
+from stereo_vo_ros.config import Config, ConfigError, from_dict, from_flat, load, to_yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_yaml_is_the_defaults_and_documents_every_field():
+    path = REPO / 'config' / 'stereo_vo.yaml'
+    assert load(path) == Config()
+    assert path.read_text() == config_mod.HEADER + to_yaml(), (
+        'config/stereo_vo.yaml is stale: regenerate with '
+        '`python -m stereo_vo_ros.config > config/stereo_vo.yaml`')
+    for name, _, f in Config().items():
+        assert f.metadata['doc'], f'{name} has no documentation'
+
+
+def test_yaml_round_trip_with_overrides(tmp_path):
+    cfg = Config().replace(**{'filter.type': 'iekf', 'tracker.max_features': 300,
+                              'ros.base_from_camera_xyz': [0.1, 0.2, 0.3]})
+    path = tmp_path / 'c.yaml'
+    path.write_text(to_yaml(cfg, node='stereo_vo_node'))
+    assert load(path) == cfg
+    # Plain nested form (no ros__parameters) is accepted too.
+    path.write_text('filter:\n  type: ukf\n')
+    assert load(path).filter.type == 'ukf'
+
+
+@pytest.mark.parametrize('data, match', [
+    ({'filtr': {'type': 'ekf'}}, "unknown configuration section 'filtr'"),
+    ({'filter': {'typ': 'ekf'}}, 'unknown parameter filter.typ'),
+    ({'filter': {'type': 'kalman'}}, "filter.type must be one of"),
+    ({'tracker': {'max_features': 2}}, r'tracker.max_features must be within \[8, 5000\], got 2'),
+    ({'tracker': {'max_features': 'many'}}, 'tracker.max_features must be an integer'),
+    ({'ransac': {'enabled': 'yes'}}, 'ransac.enabled must be true or false'),
+    ({'tracker': {'win_size_px': 20}}, 'must be odd'),
+    ({'filter': {'pixel_noise_px': float('nan')}}, 'filter.pixel_noise_px must be within'),
+    ({'ros': {'base_from_camera_xyz': [1, 2]}}, 'list of 3 numbers'),
+])
+def test_invalid_values_are_rejected_with_the_name(data, match):
+    with pytest.raises(ConfigError, match=match):
+        from_dict(data)
+
+
+def test_flat_names_as_ros_parameters():
+    cfg = from_flat({'filter.type': 'ekf', 'ransac.inlier_threshold_px': 1.5})
+    assert cfg.filter.type == 'ekf' and cfg.ransac.inlier_threshold_px == 1.5
+    with pytest.raises(ConfigError, match='no section'):
+        from_flat({'type': 'ekf'})
+    names = [name for name, _, _ in Config().items()]
+    assert len(names) == len(set(names)) and 'pipeline.max_lost_time_s' in names
+
+
+def test_load_errors_name_the_file(tmp_path):
+    with pytest.raises(ConfigError, match='cannot read configuration file'):
+        load(tmp_path / 'missing.yaml')
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('filter: [1, 2\n')
+    with pytest.raises(ConfigError, match='not valid YAML'):
+        load(bad)
