@@ -16,7 +16,6 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
-    package_data={package_name: ['default_config/*.yaml']},
     include_package_data=True,
     python_requires='>=3.10',
     # ROS 2 Python packages (rclpy, messages) come from the ROS install or from the
@@ -47,7 +46,6 @@ setup(
     maintainer_email='maintainers@stereo-vo-ros.invalid',
     description='Stereo visual odometry (trifocal ISPKF + light adaptive KLT) for ROS 2 Jazzy.',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'stereo_vo = stereo_vo_ros.cli:main',
