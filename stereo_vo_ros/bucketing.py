@@ -19,9 +19,12 @@ def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig
 
     Parameters
     ----------
-    points : (N, 2) float pixel coordinates (x right, y down).
-    size : (width, height) of the image in pixels.
-    cfg : bucketing configuration.
+    points : np.ndarray
+        (N, 2) float pixel coordinates (x right, y down).
+    size : tuple of int
+        (width, height) of the image in pixels.
+    cfg : BucketingConfig
+        Bucketing configuration.
 
     Returns
     -------
@@ -49,12 +52,17 @@ def select(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig,
 
     Parameters
     ----------
-    points : (N, 2) float pixel coordinates.
-    size : (width, height) in pixels.
-    cfg : bucketing configuration.
-    priority : (N,) float, larger is better (e.g. feature age); ties keep the input order.
-        None keeps the input order.
-    max_per_bucket : overrides ``cfg.max_per_bucket`` when given.
+    points : np.ndarray
+        (N, 2) float pixel coordinates.
+    size : tuple of int
+        (width, height) in pixels.
+    cfg : BucketingConfig
+        Bucketing configuration.
+    priority : np.ndarray, optional
+        (N,) float, larger is better (e.g. feature age); ties keep the input order. None keeps
+        the input order.
+    max_per_bucket : int, optional
+        Overrides ``cfg.max_per_bucket`` when given.
 
     Returns
     -------

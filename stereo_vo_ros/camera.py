@@ -207,7 +207,7 @@ class StereoCalibration:
     # -- geometry ---------------------------------------------------------------------
     @property
     def size(self) -> tuple[int, int]:
-        """Image size (width, height) in pixels."""
+        """Return the image size as (width, height) in pixels."""
         return self.left.width, self.left.height
 
     def projection_left(self) -> np.ndarray:

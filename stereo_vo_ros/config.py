@@ -105,7 +105,7 @@ class BucketingConfig:
 class FilterConfig:
     """Kalman filter on the egomotion state (V_X, V_Y, V_Z, w_X, w_Y, w_Z) (paper 1, III-E)."""
 
-    type: str = _f('ispkf', 'Filter: ispkf, iekf, ukf or ekf.',
+    type: str = _f('ispkf', 'Filter: ispkf, iekf, ukf or ekf.',  # noqa: A003
                    choices=('ispkf', 'iekf', 'ukf', 'ekf'))
     pixel_noise_px: float = _f(
         1.0, 'Measurement noise standard deviation (pixels).', 1e-3, 100.0, dynamic=True)
@@ -212,7 +212,7 @@ class Config:
 
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     bucketing: BucketingConfig = field(default_factory=BucketingConfig)
-    filter: FilterConfig = field(default_factory=FilterConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)  # noqa: A003
     ransac: RansacConfig = field(default_factory=RansacConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     ros: RosConfig = field(default_factory=RosConfig)
@@ -233,7 +233,7 @@ class Config:
         return dataclasses.asdict(self)
 
     def replace(self, **dotted: Any) -> 'Config':
-        """Return a copy with dotted overrides, e.g. ``replace(**{'filter.type': 'ekf'})``."""
+        """Return a copy with dotted overrides such as ``{'filter.type': 'ekf'}``."""
         data = self.as_dict()
         for key, value in dotted.items():
             sec, _, name = key.partition('.')

@@ -94,11 +94,16 @@ class MotionEstimator:
 
         Parameters
         ----------
-        corr : correspondences (ideal pixels) previous left/right -> current left/right.
-        calib : calibration of the previous pair.
-        dt : time between the pairs (s), > 0.
-        calib_cur : calibration of the current pair when it changed.
-        image_size : (width, height) for bucketing; default the calibration's.
+        corr : Correspondences
+            Ideal pixels previous left/right -> current left/right.
+        calib : StereoCalibration
+            Calibration of the previous pair.
+        dt : float
+            Time between the pairs (s), > 0.
+        calib_cur : StereoCalibration, optional
+            Calibration of the current pair when it changed.
+        image_size : tuple of int, optional
+            (width, height) for bucketing; default the calibration's.
 
         Returns
         -------

@@ -91,7 +91,6 @@ def _linearize_sigma(x: np.ndarray, L: np.ndarray, h: MeasurementFn, w0: float
     along the columns of L mapped back through ``L^-1``. ``w0`` is the weight of the centre
     point in the mean (the other 2n points share ``1 - w0`` equally).
     """
-    B = x.shape[0]
     offsets = np.swapaxes(L, 1, 2)  # (B, 6, 6): row j = column j of L
     pts = np.concatenate([x[:, None, :] + offsets, x[:, None, :] - offsets], axis=1)
     if w0 != 0.0:
@@ -181,12 +180,18 @@ class _BaseFilter:
 
         Parameters
         ----------
-        mean : (B, 6) prior states.
-        cov : (B, 6, 6) or (6, 6) prior covariance.
-        h : measurement function, states (B, S, 6) -> (B, S, M) pixels.
-        z : (B, M) measured pixels (non-finite entries are ignored).
-        noise_var : measurement noise variance (pixels^2).
-        max_iterations : overrides the configured maximum for iterated filters.
+        mean : np.ndarray
+            (B, 6) prior states.
+        cov : np.ndarray
+            (B, 6, 6) or (6, 6) prior covariance.
+        h : MeasurementFn
+            Measurement function, states (B, S, 6) -> (B, S, M) pixels.
+        z : np.ndarray
+            (B, M) measured pixels (non-finite entries are ignored).
+        noise_var : float
+            Measurement noise variance (pixels^2).
+        max_iterations : int, optional
+            Overrides the configured maximum for iterated filters.
 
         Returns
         -------

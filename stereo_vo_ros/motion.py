@@ -159,8 +159,10 @@ class TransferModel:
 
         Parameters
         ----------
-        y : (..., 6) states (m/s, rad/s).
-        X : (N, 4) or (B, N, 4) transfer vectors (default: all of this frame's); a batched X
+        y : np.ndarray
+            (..., 6) states (m/s, rad/s).
+        X : np.ndarray, optional
+            (N, 4) or (B, N, 4) transfer vectors (default: all of this frame's); a batched X
             pairs with states of shape (B, S, 6).
 
         Returns

@@ -8,7 +8,6 @@ passes a callback).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-import time
 from typing import Callable, Iterable
 
 import numpy as np
@@ -89,22 +88,10 @@ def run_stats(out: RunOutput, wall_s: float | None = None) -> dict:
     counts: dict[str, int] = {}
     for s in out.statuses:
         counts[s.value] = counts.get(s.value, 0) + 1
-    lost = sum(1 for s in out.statuses if s not in (TrackingStatus.OK,
-                                                     TrackingStatus.INITIALIZING))
+    good = (TrackingStatus.OK, TrackingStatus.INITIALIZING)
+    lost = sum(1 for s in out.statuses if s not in good)
     stats = {'frames': len(out.statuses), 'lost_frames': lost, 'statuses': counts,
              'ms': {key: summarize_ms(v) for key, v in sorted(stages.items())}}
     if wall_s is not None:
         stats['wall_s'] = wall_s
     return stats
-
-
-class Stopwatch:
-    """Context manager measuring wall time in seconds (``.seconds``)."""
-
-    def __enter__(self) -> 'Stopwatch':
-        self._t0 = time.perf_counter()
-        self.seconds = 0.0
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.seconds = time.perf_counter() - self._t0

@@ -25,7 +25,7 @@ from .camera import StereoCalibration
 from .config import Config
 from .errors import ImageError
 from .estimator import MotionEstimator
-from .motion import rotation_from_rates, transform_from_velocity, TransferModel
+from .motion import rotation_from_rates, TransferModel, transform_from_velocity
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
 from .tracker import StereoTracker
 

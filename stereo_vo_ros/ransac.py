@@ -11,8 +11,8 @@ final update on all of its inliers.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -41,8 +41,10 @@ class BatchedMeasurement:
 
     Parameters
     ----------
-    model : TransferModel of the frame.
-    X : (B, n, 4) transfer vectors of each problem, or None for all of the frame's (shared).
+    model : TransferModel
+        Measurement model of the frame.
+    X : np.ndarray or None
+        (B, n, 4) transfer vectors of each problem, or None for all of the frame's (shared).
 
     """
 
@@ -67,8 +69,11 @@ def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray)
     Parameters
     ----------
     model : TransferModel
-    states : (H, 6) hypotheses.
-    z : (N, 4) measured (u_L, v_L, u_R, v_R) pixels.
+        Measurement model of the frame.
+    states : np.ndarray
+        (H, 6) hypotheses (m/s, rad/s).
+    z : np.ndarray
+        (N, 4) measured (u_L, v_L, u_R, v_R) pixels.
 
     Returns
     -------
@@ -107,13 +112,26 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
 
     Parameters
     ----------
-    model : TransferModel of the frame (N correspondences).
-    z : (N, 4) measured current pixels.
-    prior_mean, prior_cov : (6,), (6, 6) predicted state and covariance.
-    filt : the filter that turns a sample into a hypothesis.
-    noise_var : pixel noise variance (pixels^2).
-    cfg : RANSAC configuration.
-    rng : random generator (seeded by the caller for repeatable runs).
+    model : TransferModel
+        Measurement model of the frame (N correspondences).
+    z : np.ndarray
+        (N, 4) measured current pixels.
+    prior_mean : np.ndarray
+        (6,) predicted state.
+    prior_cov : np.ndarray
+        (6, 6) predicted covariance.
+    filt : Filter
+        The filter that turns a sample into a hypothesis.
+    noise_var : float
+        Pixel noise variance (pixels^2).
+    cfg : RansacConfig
+        RANSAC configuration.
+    rng : np.random.Generator
+        Random generator (seeded by the caller for repeatable runs).
+
+    Returns
+    -------
+    RansacResult
 
     """
     N = len(z)

@@ -12,8 +12,8 @@ Frames and units used throughout the package:
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
+import enum
 from typing import TYPE_CHECKING
 
 import numpy as np

@@ -32,7 +32,12 @@ def trifocal_tensor(P_A: np.ndarray, P_B: np.ndarray, P_C: np.ndarray) -> np.nda
 
     Parameters
     ----------
-    P_A, P_B, P_C : (..., 3, 4) float64 projection matrices (broadcast over leading axes).
+    P_A : np.ndarray
+        (..., 3, 4) float64 projection matrix of camera A (pixels), broadcast over leading axes.
+    P_B : np.ndarray
+        (..., 3, 4) float64 projection matrix of camera B.
+    P_C : np.ndarray
+        (..., 3, 4) float64 projection matrix of camera C.
 
     Returns
     -------
@@ -86,8 +91,12 @@ def perpendicular_lines(F: np.ndarray, x_A: np.ndarray, x_B: np.ndarray) -> np.n
 
     Parameters
     ----------
-    F : (3, 3) fundamental matrix with ``x_B^T F x_A = 0``.
-    x_A, x_B : (N, 2) float64 pixel coordinates in images A and B.
+    F : np.ndarray
+        (3, 3) fundamental matrix with ``x_B^T F x_A = 0``.
+    x_A : np.ndarray
+        (N, 2) float64 pixel coordinates in image A.
+    x_B : np.ndarray
+        (N, 2) float64 pixel coordinates of the matches in image B.
 
     Returns
     -------
@@ -107,9 +116,12 @@ def transfer_points(T: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarr
 
     Parameters
     ----------
-    T : (..., 3, 3, 3) trifocal tensor(s).
-    x_A : (N, 2) pixel coordinates in image A.
-    l_B : (N, 3) lines through the matching points in image B.
+    T : np.ndarray
+        (..., 3, 3, 3) trifocal tensor(s).
+    x_A : np.ndarray
+        (N, 2) pixel coordinates in image A.
+    l_B : np.ndarray
+        (N, 3) lines through the matching points in image B.
 
     Returns
     -------
@@ -127,9 +139,12 @@ def transfer_basis(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarra
 
     Parameters
     ----------
-    G : (3, 3, 4) from :func:`tensor_basis`.
-    x_A : (N, 2) pixel coordinates in image A.
-    l_B : (N, 3) lines in image B.
+    G : np.ndarray
+        (3, 3, 4) from :func:`tensor_basis`.
+    x_A : np.ndarray
+        (N, 2) pixel coordinates in image A.
+    l_B : np.ndarray
+        (N, 3) lines in image B.
 
     Returns
     -------

@@ -34,7 +34,7 @@ def test_yaml_round_trip_with_overrides(tmp_path):
 @pytest.mark.parametrize('data, match', [
     ({'filtr': {'type': 'ekf'}}, "unknown configuration section 'filtr'"),
     ({'filter': {'typ': 'ekf'}}, 'unknown parameter filter.typ'),
-    ({'filter': {'type': 'kalman'}}, "filter.type must be one of"),
+    ({'filter': {'type': 'kalman'}}, 'filter.type must be one of'),
     ({'tracker': {'max_features': 2}}, r'tracker.max_features must be within \[8, 5000\], got 2'),
     ({'tracker': {'max_features': 'many'}}, 'tracker.max_features must be an integer'),
     ({'ransac': {'enabled': 'yes'}}, 'ransac.enabled must be true or false'),

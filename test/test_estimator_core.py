@@ -9,8 +9,8 @@ from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.errors import CalibrationError
 from stereo_vo_ros.estimator import MotionEstimator
-from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, \
-    transform_from_velocity, TransferModel, velocity_from_transform
+from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, TransferModel, \
+    transform_from_velocity, velocity_from_transform
 from stereo_vo_ros.ransac import num_samples
 from stereo_vo_ros.records import Correspondences, TrackingStatus
 from stereo_vo_ros.trifocal import fundamental_from_projections, perpendicular_lines, \
@@ -148,7 +148,8 @@ def test_ransac_recovers_motion_with_half_outliers():
     pl, pr, cl, cr = observe(calib, random_scene(rng, 200), transform_from_velocity(y, 0.1))
     outlier = rng.random(200) < 0.5
     cl = cl.copy()
-    cl[outlier] += rng.uniform(5, 40, (outlier.sum(), 2)) * rng.choice([-1, 1], (outlier.sum(), 2))
+    n_out = int(outlier.sum())
+    cl[outlier] += rng.uniform(5, 40, (n_out, 2)) * rng.choice([-1, 1], (n_out, 2))
     noise = 0.3
     corr = Correspondences(pl, pr, cl + rng.normal(0, noise, cl.shape),
                            cr + rng.normal(0, noise, cr.shape))
@@ -192,10 +193,12 @@ def test_raw_calibration_matches_rectified_equivalent():
                                              _camera_info(K2, D2, R2, P2, w, h), 'raw')
     np.testing.assert_allclose(raw.R_right_left, R_rl, atol=1e-9)
     np.testing.assert_allclose(raw.t_right_left, t_rl, atol=1e-9)
-    rect = StereoCalibration.from_camera_info(_camera_info(P1[:, :3], [0] * 5, np.eye(3), P1, w, h),
-                                              _camera_info(P2[:, :3], [0] * 5, np.eye(3), P2, w, h))
+    rect = StereoCalibration.from_camera_info(
+        _camera_info(P1[:, :3], [0] * 5, np.eye(3), P1, w, h),
+        _camera_info(P2[:, :3], [0] * 5, np.eye(3), P2, w, h))
     # Scene and motion in the raw left camera frame.
-    X = np.column_stack([rng.uniform(-3, 3, 150), rng.uniform(-2, 2, 150), rng.uniform(2, 12, 150)])
+    X = np.column_stack([rng.uniform(-3, 3, 150), rng.uniform(-2, 2, 150),
+                         rng.uniform(2, 12, 150)])
     y = np.array([0.3, 0.1, 1.5, 0.05, -0.1, 0.02])
     T = transform_from_velocity(y, 0.05)
     Xc = (X - T[:3, 3]) @ T[:3, :3]
@@ -240,13 +243,13 @@ def _pinhole(fx=500.0, tx=-50.0, w=640, h=480):
 
 
 @pytest.mark.parametrize('right, match', [
-    (dict(fx=float('nan')), 'non-finite'),
-    (dict(fx=0.0), 'focal length must be positive'),
-    (dict(fx=-10.0), 'focal length must be positive'),
-    (dict(tx=0.0), 'baseline must be positive'),
-    (dict(tx=50.0), 'right camera must be to the right'),
-    (dict(w=320), 'sizes differ'),
-    (dict(w=0), 'size must be positive'),
+    ({'fx': float('nan')}, 'non-finite'),
+    ({'fx': 0.0}, 'focal length must be positive'),
+    ({'fx': -10.0}, 'focal length must be positive'),
+    ({'tx': 0.0}, 'baseline must be positive'),
+    ({'tx': 50.0}, 'right camera must be to the right'),
+    ({'w': 320}, 'sizes differ'),
+    ({'w': 0}, 'size must be positive'),
 ])
 def test_invalid_calibration_rejected(right, match):
     left = _pinhole(tx=0.0)
