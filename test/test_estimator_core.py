@@ -187,8 +187,8 @@ def test_raw_calibration_matches_rectified_equivalent():
     D2 = np.array([-0.28, 0.07, -0.0001, -0.00005, 0.0])
     R_rl = Rotation.from_rotvec([0.003, -0.01, 0.002]).as_matrix()
     t_rl = np.array([-0.11, 0.0004, -0.0008])
-    R1, R2, P1, P2, *_ = cv2.stereoRectify(K1, D1, K2, D2, (w, h), R_rl, t_rl.reshape(3, 1),
-                                          alpha=0)
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(K1, D1, K2, D2, (w, h), R_rl,
+                                           t_rl.reshape(3, 1), alpha=0)
     raw = StereoCalibration.from_camera_info(_camera_info(K1, D1, R1, P1, w, h),
                                              _camera_info(K2, D2, R2, P2, w, h), 'raw')
     np.testing.assert_allclose(raw.R_right_left, R_rl, atol=1e-9)
