@@ -109,6 +109,9 @@ class FilterConfig:
                    choices=('ispkf', 'iekf', 'ukf', 'ekf'))
     pixel_noise_px: float = _f(
         1.0, 'Measurement noise standard deviation (pixels).', 1e-3, 100.0, dynamic=True)
+    propagate_previous_noise: bool = _f(
+        True, 'Add the pixel noise of the previous pair, propagated through the transfer, to '
+        'each measurement variance (R stays diagonal) and widen the RANSAC gate accordingly.')
     velocity_process_noise: float = _f(
         2.0, 'Process noise std of linear velocity per frame (m/s).', 1e-6, 1e3, dynamic=True)
     angular_process_noise_deg: float = _f(

@@ -130,12 +130,21 @@ class MotionEstimator:
         sub = corr.subset(candidates)
         model = TransferModel(calib, sub.prev_left, sub.prev_right, dt, calib_cur)
         z = np.hstack([sub.cur_left, sub.cur_right])  # (n, 4)
-        noise_var = cfg.filter.pixel_noise_px ** 2
+        sigma2 = cfg.filter.pixel_noise_px ** 2
+        if cfg.filter.propagate_previous_noise:
+            # The previous observations are noisy too: their noise reaches each prediction
+            # through the transfer (errors in variables). R stays diagonal.
+            gain = model.previous_noise_gain(prior_mean)
+        else:
+            gain = np.zeros_like(z)
+        noise_var = sigma2 * (1.0 + gain)  # (n, 4)
+        scale = np.sqrt(1.0 + 0.5 * np.stack([gain[:, 0] + gain[:, 1],
+                                              gain[:, 2] + gain[:, 3]], axis=1))
         hypotheses = 0
         inl = np.ones(len(candidates), bool)
         if cfg.ransac.enabled:
             res = ransac(model, z, prior_mean, prior_cov, self.filter, noise_var, cfg.ransac,
-                         self.rng)
+                         self.rng, scale)
             inl, hypotheses = res.inliers, res.hypotheses
         if inl.sum() < cfg.pipeline.min_inliers:
             return self._fail(TrackingStatus.TOO_FEW_INLIERS, dt, used, hypotheses, 0,
@@ -143,7 +152,7 @@ class MotionEstimator:
                               f'{cfg.pipeline.min_inliers})')
         X = model.X[inl][None]
         out = self.filter.update(prior_mean[None], prior_cov, BatchedMeasurement(model, X),
-                                 z[inl].reshape(1, -1), noise_var)
+                                 z[inl].reshape(1, -1), noise_var[inl].reshape(1, -1))
         mean, cov, iters = out.mean[0], out.cov[0], int(out.iterations[0])
         if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
             return self._fail(TrackingStatus.DEGENERATE, dt, used, hypotheses, iters,
@@ -154,7 +163,7 @@ class MotionEstimator:
                               f'implausible speed {speed:.1f} m/s')
         if cfg.ransac.enabled:
             # Report the inliers of the final estimate (what the motion explains).
-            err = reprojection_errors(model, mean[None], z)[0]
+            err = reprojection_errors(model, mean[None], z, scale)[0]
             inl = err < cfg.ransac.inlier_threshold_px
         used[candidates[inl]] = True
         self.mean, self.cov = mean, cov

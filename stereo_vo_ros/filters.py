@@ -77,7 +77,8 @@ class Filter(Protocol):
     name: str
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
-               noise_var: float, max_iterations: int | None = None) -> FilterOutput:
+               noise_var: float | np.ndarray, max_iterations: int | None = None
+               ) -> FilterOutput:
         """Update B priors ``(mean (B,6), cov (B,6,6))`` with measurements ``z (B,M)``."""
 
 
@@ -141,7 +142,7 @@ def safe_cholesky(C: np.ndarray) -> np.ndarray:
 
 
 def _information_step(x_prior: np.ndarray, info_prior: np.ndarray, x_i: np.ndarray,
-                      z_bar: np.ndarray, H: np.ndarray, z: np.ndarray, r_inv: float
+                      z_bar: np.ndarray, H: np.ndarray, z: np.ndarray, r_inv: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """One information-form update; non-finite predictions are left out. Returns (x, Lambda)."""
     valid = np.isfinite(z_bar) & np.isfinite(z) & np.isfinite(H).all(axis=2)
@@ -149,8 +150,8 @@ def _information_step(x_prior: np.ndarray, info_prior: np.ndarray, x_i: np.ndarr
     resid = np.where(valid, resid, 0.0)
     Hm = np.where(valid[..., None], H, 0.0)
     Ht = np.swapaxes(Hm, 1, 2)
-    lam = info_prior + r_inv * (Ht @ Hm)
-    rhs = r_inv * (Ht @ resid[..., None])[..., 0]
+    lam = info_prior + Ht @ (r_inv[..., None] * Hm)
+    rhs = (Ht @ (r_inv * resid)[..., None])[..., 0]
     dx = np.linalg.solve(lam, rhs[..., None])[..., 0]
     return x_prior + dx, lam
 
@@ -174,7 +175,8 @@ class _BaseFilter:
                                   [np.deg2rad(cfg.threshold_angular_deg)] * 3)
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
-               noise_var: float, max_iterations: int | None = None) -> FilterOutput:
+               noise_var: float | np.ndarray, max_iterations: int | None = None
+               ) -> FilterOutput:
         """
         Update B priors with measurements; see the module docstring for the equations.
 
@@ -188,8 +190,9 @@ class _BaseFilter:
             Measurement function, states (B, S, 6) -> (B, S, M) pixels.
         z : np.ndarray
             (B, M) measured pixels (non-finite entries are ignored).
-        noise_var : float
-            Measurement noise variance (pixels^2).
+        noise_var : float or np.ndarray
+            Measurement noise variance (pixels^2): a scalar, or (B, M) per measurement (R is
+            diagonal either way).
         max_iterations : int, optional
             Overrides the configured maximum for iterated filters.
 
@@ -202,7 +205,7 @@ class _BaseFilter:
         B = mean.shape[0]
         cov = np.broadcast_to(np.asarray(cov, np.float64), (B, STATE_DIM, STATE_DIM))
         info_prior = np.linalg.inv(cov)
-        r_inv = 1.0 / float(noise_var)
+        r_inv = np.broadcast_to(1.0 / np.asarray(noise_var, np.float64), z.shape)
         scale = np.sqrt(STATE_DIM + self.lam)
         if self.sigma:
             L = safe_cholesky(cov) * scale

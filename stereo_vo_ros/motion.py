@@ -127,12 +127,45 @@ class TransferModel:
         self.K_right = cur.K_right
         self.R_rl = cur.R_right_left
         self.t_rl = cur.t_right_left
-        self.G, F = _pair_geometry(calib)
-        lines = perpendicular_lines(F, prev_left, prev_right)
+        self.G, self.F = _pair_geometry(calib)
+        self.prev_left = np.asarray(prev_left, np.float64)
+        self.prev_right = np.asarray(prev_right, np.float64)
+        lines = perpendicular_lines(self.F, prev_left, prev_right)
         self.X = transfer_basis(self.G, prev_left, lines)  # (N, 4)
 
     def __len__(self) -> int:
         return len(self.X)
+
+    def previous_noise_gain(self, y: np.ndarray, step_px: float = 0.5) -> np.ndarray:
+        """Sensitivity of the predictions to the previous observations.
+
+        The transfer treats the previous pair as exact; its pixel noise reaches the predicted
+        current pixels through the transfer. This returns, for each predicted coordinate, the
+        sum of squared derivatives with respect to the four previous coordinates (u_L, v_L,
+        u_R, v_R), by finite differences of ``step_px`` at state ``y``: with isotropic pixel
+        noise ``sigma`` the variance of a residual is ``sigma^2 (1 + gain)``.
+
+        Parameters
+        ----------
+        y : np.ndarray
+            (6,) state at which to linearise (m/s, rad/s).
+        step_px : float
+            Finite-difference step (pixels).
+
+        Returns
+        -------
+        (N, 4) float64 gains (dimensionless), finite (non-finite entries become 1e6).
+
+        """
+        base = self.predict(np.asarray(y, np.float64))  # (N, 4)
+        gain = np.zeros_like(base)
+        for side, col in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            pl, pr = self.prev_left.copy(), self.prev_right.copy()
+            (pl if side == 0 else pr)[:, col] += step_px
+            lines = perpendicular_lines(self.F, pl, pr)
+            pert = self.predict(y, transfer_basis(self.G, pl, lines))
+            gain += ((pert - base) / step_px) ** 2
+        return np.where(np.isfinite(gain), gain, 1e6)
 
     def cameras(self, y: np.ndarray) -> np.ndarray:
         """

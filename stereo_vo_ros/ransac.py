@@ -62,7 +62,8 @@ class BatchedMeasurement:
         return BatchedMeasurement(self.model, None if self.X is None else self.X[idx])
 
 
-def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray) -> np.ndarray:
+def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray,
+                        scale: np.ndarray | None = None) -> np.ndarray:
     """
     Euclidean reprojection error in the current images.
 
@@ -74,15 +75,22 @@ def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray)
         (H, 6) hypotheses (m/s, rad/s).
     z : np.ndarray
         (N, 4) measured (u_L, v_L, u_R, v_R) pixels.
+    scale : np.ndarray, optional
+        (N, 2) factors dividing the left and right image errors (the residual standard
+        deviation relative to the nominal pixel noise, see ``previous_noise_gain``).
 
     Returns
     -------
-    (H, N) float64: the larger of the left and right image errors (pixels), inf when undefined.
+    (H, N) float64: the larger of the left and right image errors (pixels, scaled), inf when
+    undefined.
 
     """
     pred = model.predict(states)  # (H, N, 4)
     d = pred - z[None]
-    err = np.maximum(np.hypot(d[..., 0], d[..., 1]), np.hypot(d[..., 2], d[..., 3]))
+    e_left, e_right = np.hypot(d[..., 0], d[..., 1]), np.hypot(d[..., 2], d[..., 3])
+    if scale is not None:
+        e_left, e_right = e_left / scale[:, 0], e_right / scale[:, 1]
+    err = np.maximum(e_left, e_right)
     return np.where(np.isfinite(err), err, np.inf)
 
 
@@ -105,8 +113,8 @@ class RansacResult:
 
 
 def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_cov: np.ndarray,
-           filt: Filter, noise_var: float, cfg: RansacConfig, rng: np.random.Generator
-           ) -> RansacResult:
+           filt: Filter, noise_var: np.ndarray, cfg: RansacConfig, rng: np.random.Generator,
+           scale: np.ndarray | None = None) -> RansacResult:
     """
     Select the inliers of the best 3-point hypothesis.
 
@@ -122,12 +130,14 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
         (6, 6) predicted covariance.
     filt : Filter
         The filter that turns a sample into a hypothesis.
-    noise_var : float
-        Pixel noise variance (pixels^2).
+    noise_var : np.ndarray
+        (N, 4) variance of each measurement (pixels^2).
     cfg : RansacConfig
         RANSAC configuration.
     rng : np.random.Generator
         Random generator (seeded by the caller for repeatable runs).
+    scale : np.ndarray, optional
+        (N, 2) error scale per point and image (see :func:`reprojection_errors`).
 
     Returns
     -------
@@ -139,10 +149,11 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
     samples = np.argpartition(rng.random((n_hyp, N)), SAMPLE_SIZE - 1, axis=1)[:, :SAMPLE_SIZE]
     X = model.X[samples]  # (H, 3, 4)
     zs = z[samples].reshape(n_hyp, -1)  # (H, 12)
+    var = np.broadcast_to(noise_var, z.shape)[samples].reshape(n_hyp, -1)
     out = filt.update(np.broadcast_to(prior_mean, (n_hyp, 6)), prior_cov,
-                      BatchedMeasurement(model, X), zs, noise_var,
+                      BatchedMeasurement(model, X), zs, var,
                       max_iterations=cfg.hypothesis_iterations)
-    err = reprojection_errors(model, out.mean, z)  # (H, N)
+    err = reprojection_errors(model, out.mean, z, scale)  # (H, N)
     inl = err < cfg.inlier_threshold_px
     count = inl.sum(axis=1)
     score = np.where(inl, err, 0.0).sum(axis=1)
