@@ -137,7 +137,8 @@ class TransferModel:
         return len(self.X)
 
     def previous_noise_gain(self, y: np.ndarray, step_px: float = 0.5) -> np.ndarray:
-        """Sensitivity of the predictions to the previous observations.
+        """
+        Sensitivity of the predictions to the previous observations.
 
         The transfer treats the previous pair as exact; its pixel noise reaches the predicted
         current pixels through the transfer. This returns, for each predicted coordinate, the
