@@ -1,0 +1,275 @@
+"""
+KLT passes and the consistency checks of the light adaptive feature tracking paper (paper 2).
+
+One pyramidal Lucas-Kanade pass (``lk_pass``) wraps ``cv2.calcOpticalFlowPyrLK``; the checks are
+pure functions on the points it returns:
+
+* forward-backward check (eq. 4) and left-right check (eq. 5): ``round_trip_error`` below the
+  threshold delta1 / delta2;
+* disparity constraint (eq. 6): ``disparity_constraint`` (|y_left - y_right| < delta3 on
+  rectified input, the distance to the epipolar line on raw input);
+* plausible disparity: ``disparity_in_range``;
+* light bi-circular check (eq. 7): ``bicircular_error`` in its two readings (``roundtrip`` and
+  ``closure``, see the function).
+
+``CheckSet.for_variant`` maps the ablation variants of the paper (Tables I and II) to the checks
+that run. Pixel coordinates are (x right, y down) in the image named by each argument; ``raw``
+means the pixels of the image as given to the tracker, ``ideal`` the undistorted pinhole pixels
+of the calibration (identical on rectified input).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .camera import StereoCalibration
+from .config import TRACKER_VARIANTS
+from .errors import ConfigError
+
+#: Convergence threshold of one KLT iteration (pixels), as VINS-Fusion uses.
+KLT_EPSILON_PX = 0.01
+#: Default border of ``inside_image`` (pixels).
+BORDER_PX = 1.0
+#: The two readings of eq. 7.
+BICIRCULAR_MODES = ('roundtrip', 'closure')
+
+
+@dataclass(frozen=True)
+class CheckSet:
+    """
+    Which checks run (the forward-backward and left-right checks always run).
+
+    Attributes
+    ----------
+    disparity_constraint : bool
+        Apply eq. 6 after the stereo forward pass, before the left-right reverse pass.
+    bicircular : bool
+        Apply the light bi-circular check (eq. 7).
+    adaptive : bool
+        Use the adaptive threshold of eq. 8 for the bi-circular check instead of a fixed one.
+
+    """
+
+    disparity_constraint: bool
+    bicircular: bool
+    adaptive: bool
+
+    @classmethod
+    def for_variant(cls, variant: str) -> 'CheckSet':
+        """
+        Return the checks of one ablation variant of the paper.
+
+        ``baseline`` (VINS-Fusion: forward-backward + left-right), ``dc`` (+ disparity
+        constraint), ``bc`` (+ bi-circular check, fixed threshold), ``db`` (dc + bc, fixed
+        threshold), ``full`` (dc + bc with the adaptive threshold).
+
+        Raises
+        ------
+        ConfigError
+            Unknown variant name.
+
+        """
+        table = {
+            'baseline': cls(False, False, False),
+            'dc': cls(True, False, False),
+            'bc': cls(False, True, False),
+            'db': cls(True, True, False),
+            'full': cls(True, True, True),
+        }
+        if variant not in table:
+            raise ConfigError(
+                f'tracker.variant must be one of {list(TRACKER_VARIANTS)}, got {variant!r}')
+        return table[variant]
+
+
+def lk_pass(img_from: np.ndarray, img_to: np.ndarray, pts: np.ndarray,
+            guess: np.ndarray | None, levels: int, win_size_px: int,
+            max_iterations: int, border_px: float | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Track points from one image into another with pyramidal KLT.
+
+    Parameters
+    ----------
+    img_from, img_to : np.ndarray
+        (H, W) uint8 grey images.
+    pts : np.ndarray
+        (N, 2) float pixel positions in ``img_from`` (raw pixels).
+    guess : np.ndarray or None
+        (N, 2) float initial positions in ``img_to`` (raw pixels), used as the initial flow;
+        None starts every point at its position in ``img_from``.
+    levels : int
+        Pyramid levels above the base image (0: base image only).
+    win_size_px : int
+        Side of the square KLT window (pixels).
+    max_iterations : int
+        Iterations per pyramid level.
+    border_px : float or None
+        Tracked points must lie this far inside ``img_to`` (pixels); None: half the window,
+        so that the whole KLT window lies inside the image (a window that sticks out of the
+        image biases the result by tenths of a pixel).
+
+    Returns
+    -------
+    tracked : np.ndarray
+        (N, 2) float32 positions in ``img_to`` (raw pixels); rows that failed hold the input.
+    ok : np.ndarray
+        (N,) bool: KLT converged and the point lies inside ``img_to``.
+
+    """
+    n = len(pts)
+    src = np.ascontiguousarray(pts, np.float32).reshape(n, 2)
+    if n == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iterations),
+                KLT_EPSILON_PX)
+    win = (int(win_size_px), int(win_size_px))
+    if guess is None:
+        out, status, _ = cv2.calcOpticalFlowPyrLK(
+            img_from, img_to, src.reshape(-1, 1, 2), None, winSize=win, maxLevel=int(levels),
+            criteria=criteria)
+    else:
+        init = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2).copy()
+        bad = ~np.all(np.isfinite(init.reshape(n, 2)), axis=1)
+        init.reshape(n, 2)[bad] = src[bad]
+        out, status, _ = cv2.calcOpticalFlowPyrLK(
+            img_from, img_to, src.reshape(-1, 1, 2), init, winSize=win, maxLevel=int(levels),
+            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    tracked = out.reshape(n, 2)
+    border = win_size_px // 2 if border_px is None else border_px
+    ok = status.reshape(n).astype(bool) & inside_image(tracked, img_to.shape[::-1], border)
+    tracked = np.where(ok[:, None], tracked, src).astype(np.float32)
+    return tracked, ok
+
+
+def inside_image(pts: np.ndarray, size: tuple[int, int], border_px: float = BORDER_PX
+                 ) -> np.ndarray:
+    """Return (N,) bool: finite points at least ``border_px`` inside a (width, height) image."""
+    pts = np.asarray(pts).reshape(-1, 2)
+    w, h = size
+    with np.errstate(invalid='ignore'):
+        return (np.all(np.isfinite(pts), axis=1) & (pts[:, 0] >= border_px)
+                & (pts[:, 1] >= border_px) & (pts[:, 0] <= w - 1 - border_px)
+                & (pts[:, 1] <= h - 1 - border_px))
+
+
+def round_trip_error(start: np.ndarray, returned: np.ndarray) -> np.ndarray:
+    """
+    Distance between a point and its reverse point (pixels), eqs. 4, 5 and 7.
+
+    Parameters
+    ----------
+    start, returned : np.ndarray
+        (N, 2) float pixel positions in the same image.
+
+    Returns
+    -------
+    np.ndarray
+        (N,) float64 Euclidean distance (pixels); ``inf`` where an input is not finite.
+
+    """
+    d = np.linalg.norm(np.asarray(start, np.float64) - np.asarray(returned, np.float64), axis=1)
+    return np.where(np.isfinite(d), d, np.inf)
+
+
+def disparity_constraint(calib: StereoCalibration, left_ideal: np.ndarray,
+                         right_ideal: np.ndarray, threshold_px: float) -> np.ndarray:
+    """
+    Disparity constraint of eq. 6: the stereo match lies near its epipolar line.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+        The stereo calibration; rectified input tests |y_left - y_right|, raw input the
+        distance to the epipolar line of the calibrated fundamental matrix.
+    left_ideal, right_ideal : np.ndarray
+        (N, 2) float ideal (undistorted) pixel positions in the left and right image at t2.
+    threshold_px : float
+        delta3 (pixels).
+
+    Returns
+    -------
+    np.ndarray
+        (N,) bool, True where the match passes.
+
+    """
+    if len(left_ideal) == 0:
+        return np.zeros(0, bool)
+    d = calib.epipolar_distance(left_ideal, right_ideal)
+    return np.isfinite(d) & (d < threshold_px)
+
+
+def disparity_in_range(calib: StereoCalibration, left_ideal: np.ndarray,
+                       right_ideal: np.ndarray, min_px: float, max_px: float) -> np.ndarray:
+    """
+    Reject negative and implausible disparities.
+
+    Parameters
+    ----------
+    calib : StereoCalibration
+        The stereo calibration (the disparity is measured in its rectified geometry).
+    left_ideal, right_ideal : np.ndarray
+        (N, 2) float ideal pixel positions (left and right image of the same instant).
+    min_px, max_px : float
+        Accepted disparity range x_left - x_right (pixels); the minimum is exclusive.
+
+    Returns
+    -------
+    np.ndarray
+        (N,) bool, True where ``min_px < disparity <= max_px``.
+
+    """
+    if len(left_ideal) == 0:
+        return np.zeros(0, bool)
+    d = calib.disparity(left_ideal, right_ideal)
+    with np.errstate(invalid='ignore'):
+        return np.isfinite(d) & (d > min_px) & (d <= max_px)
+
+
+def bicircular_error(mode: str, right_t2: np.ndarray, back_t1: np.ndarray,
+                     stored_t1: np.ndarray, again_t2: np.ndarray | None) -> np.ndarray:
+    """
+    Error of the light bi-circular check (eq. 7) in one of its two readings.
+
+    ``roundtrip`` tracks right(t2) -> right(t1) -> right(t2) and measures the distance of the
+    returned point to the start (``again_t2`` vs ``right_t2``); ``closure`` tracks right(t2) ->
+    right(t1) once and measures the distance to the right(t1) point stored for the feature in
+    the previous frame (``back_t1`` vs ``stored_t1``), which closes the loop
+    left(t1) -> left(t2) -> right(t2) -> right(t1) -> left(t1).
+
+    Parameters
+    ----------
+    mode : str
+        ``roundtrip`` or ``closure``.
+    right_t2 : np.ndarray
+        (N, 2) float raw pixel positions in the right image at t2 (the stereo matches).
+    back_t1 : np.ndarray
+        (N, 2) float raw positions of ``right_t2`` tracked into the right image at t1.
+    stored_t1 : np.ndarray
+        (N, 2) float raw positions of the features in the right image at t1 (previous frame).
+    again_t2 : np.ndarray or None
+        (N, 2) float raw positions of ``back_t1`` tracked back into the right image at t2
+        (``roundtrip`` only).
+
+    Returns
+    -------
+    np.ndarray
+        (N,) float64 error (pixels).
+
+    Raises
+    ------
+    ConfigError
+        Unknown mode, or ``roundtrip`` without ``again_t2``.
+
+    """
+    if mode == 'closure':
+        return round_trip_error(stored_t1, back_t1)
+    if mode == 'roundtrip':
+        if again_t2 is None:
+            raise ConfigError('bicircular_mode roundtrip needs the points tracked back to t2')
+        return round_trip_error(right_t2, again_t2)
+    raise ConfigError(
+        f'tracker.bicircular_mode must be one of {list(BICIRCULAR_MODES)}, got {mode!r}')

@@ -1,0 +1,730 @@
+"""
+Stereo KLT feature tracker with the light adaptive checks of paper 2.
+
+Every call to ``StereoTracker.track`` takes the current stereo pair (t2) and returns the
+quadruples (left t1, right t1, left t2, right t2) of the features that survive, in this order:
+
+1. temporal pass left(t1) -> left(t2) (initial flow from the motion prior when given), then the
+   forward-backward check (eq. 4, delta1);
+2. stereo pass left(t2) -> right(t2) starting at the previous (or predicted) disparity; the
+   disparity constraint (eq. 6, delta3) and the disparity range run BEFORE the reverse pass, so
+   rejected features are not tracked back; then the left-right check (eq. 5, delta2);
+3. light bi-circular check (eq. 7) between right(t2) and right(t1) with a fixed or adaptive
+   (eq. 8) threshold delta_d;
+4. replenishment: Shi-Tomasi corners are detected only in the buckets of the bucketing grid that
+   lack features, away from the existing features, and matched into the right image.
+
+A feature is deleted at its first failed check. Which checks run is set by
+``TrackerConfig.variant`` (see ``klt_checks.CheckSet``). KLT runs on the images as given (raw
+pixels); the correspondences handed to the estimator are undistorted to the ideal pinhole pixels
+of the calibration (identical to raw pixels for rectified input).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import logging
+import math
+import time
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from . import bucketing
+from .adaptive_threshold import bicircular_threshold
+from .camera import StereoCalibration
+from .config import BucketingConfig, TrackerConfig
+from .errors import ConfigError, ImageError
+from .klt_checks import (
+    bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint, disparity_in_range,
+    lk_pass, round_trip_error)
+from .records import Correspondences
+
+logger = logging.getLogger(__name__)
+
+#: Clock of the per-stage timings (seconds); a benchmark may swap in ``time.thread_time``.
+CLOCK = time.perf_counter
+#: Pyramid levels of the reverse passes (forward-backward, left-right, bi-circular return);
+#: they start at the point they should return to, so the base image suffices.
+REVERSE_PYRAMID_LEVELS = 0
+#: A new corner closer than this to a tracked feature starts its stereo search at that
+#: feature's disparity with ``predicted_pyramid_levels`` (pixels).
+NEIGHBOUR_RADIUS_PX = 80.0
+#: Detection searches buckets whose free slots add up to this many times the features needed.
+DETECTION_OVERSAMPLING = 1.0
+#: A searched bucket that gave no new feature is skipped for this many frames (sky, road).
+BARREN_BUCKET_FRAMES = 8
+#: Timed stages, keys of ``TrackerStats.timings_ms`` (plus ``total``).
+STAGES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
+          'detection')
+#: KLT passes, keys of ``TrackerStats.pass_points``.
+PASSES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
+          'new_stereo_fwd', 'new_stereo_bwd')
+#: Checks, keys of ``TrackerStats.failed``: KLT failure of the temporal pass, forward-backward,
+#: KLT failure of the stereo pass, disparity constraint, disparity range, left-right,
+#: KLT failure or threshold of the bi-circular check.
+CHECKS = ('temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr', 'bc')
+
+#: Motion prior: (prev_left_ideal (N, 2), prev_right_ideal (N, 2)) -> (cur_left_pred (N, 2),
+#: cur_right_pred (N, 2)), all float64 ideal pixels.
+Prior = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class TrackerStats:
+    """
+    Per-frame statistics of the tracker.
+
+    Attributes
+    ----------
+    initialized : bool
+        True if this frame (re)started tracking (first frame, reset, new calibration or size).
+    n_previous : int
+        Features alive at t1.
+    n_tracked : int
+        Quadruples returned (features that passed every check).
+    n_detected : int
+        Corners detected in this frame.
+    n_added : int
+        Detected corners that found a stereo match and were added.
+    n_features : int
+        Features alive after this frame (tracked + added).
+    failed : dict
+        Features removed per check (keys: ``CHECKS``).
+    loss : int
+        Features lost before the bi-circular check (``loss`` of eq. 8).
+    maxtrack : int
+        Age of the oldest feature at the bi-circular check (frames, ``maxtrack`` of eq. 8).
+    delta_d_px : float
+        Bi-circular threshold used (pixels); NaN when the check did not run.
+    used_prior : bool
+        True if the motion prior gave the initial flow.
+    timings_ms : dict
+        Milliseconds per stage (keys: ``STAGES`` and ``total``).
+    pass_points : dict
+        Points entering each KLT pass of the tracked features (keys: ``STAGES`` without
+        ``detection``) and of the new corners (``new_stereo_fwd``, ``new_stereo_bwd``).
+
+    """
+
+    initialized: bool = False
+    n_previous: int = 0
+    n_tracked: int = 0
+    n_detected: int = 0
+    n_added: int = 0
+    n_features: int = 0
+    failed: dict = field(default_factory=lambda: dict.fromkeys(CHECKS, 0))
+    loss: int = 0
+    maxtrack: int = 0
+    delta_d_px: float = math.nan
+    used_prior: bool = False
+    timings_ms: dict = field(default_factory=lambda: dict.fromkeys(STAGES + ('total',), 0.0))
+    pass_points: dict = field(default_factory=lambda: dict.fromkeys(PASSES, 0))
+
+
+@dataclass
+class TrackResult:
+    """
+    Output of one tracked stereo pair.
+
+    Attributes
+    ----------
+    correspondences : Correspondences
+        Quadruples in ideal (undistorted) pixels, float64, with feature ids and ages (frames
+        tracked, >= 1); empty on an initialising frame.
+    raw : Correspondences
+        The same rows in raw pixels of the images as given (for drawing).
+    features_left_raw, features_right_raw : np.ndarray
+        (M, 2) float64 raw pixel positions of every feature alive after this frame in the
+        current left and right image (tracked and newly detected).
+    feature_ids, feature_ages : np.ndarray
+        (M,) int64 ids and ages of those features (age 0: detected in this frame).
+    stats : TrackerStats
+        Counts, thresholds and timings of this frame.
+
+    """
+
+    correspondences: Correspondences
+    raw: Correspondences
+    features_left_raw: np.ndarray
+    features_right_raw: np.ndarray
+    feature_ids: np.ndarray
+    feature_ages: np.ndarray
+    stats: TrackerStats
+
+
+@dataclass
+class _Features:
+    """Features alive in one stereo pair (internal state)."""
+
+    ids: np.ndarray  # (N,) int64
+    ages: np.ndarray  # (N,) int64 frames tracked
+    left_raw: np.ndarray  # (N, 2) float32 raw pixels, left image
+    right_raw: np.ndarray  # (N, 2) float32 raw pixels, right image
+    left_ideal: np.ndarray  # (N, 2) float64 ideal pixels, left image
+    right_ideal: np.ndarray  # (N, 2) float64 ideal pixels, right image
+
+    @classmethod
+    def empty(cls) -> '_Features':
+        z32, z64 = np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float64)
+        zi = np.zeros(0, np.int64)
+        return cls(zi, zi.copy(), z32, z32.copy(), z64, z64.copy())
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def take(self, sel: np.ndarray) -> '_Features':
+        return _Features(self.ids[sel], self.ages[sel], self.left_raw[sel], self.right_raw[sel],
+                         self.left_ideal[sel], self.right_ideal[sel])
+
+    def concat(self, other: '_Features') -> '_Features':
+        return _Features(*(np.concatenate([a, b]) for a, b in (
+            (self.ids, other.ids), (self.ages, other.ages), (self.left_raw, other.left_raw),
+            (self.right_raw, other.right_raw), (self.left_ideal, other.left_ideal),
+            (self.right_ideal, other.right_ideal))))
+
+
+def _empty_correspondences() -> Correspondences:
+    z = np.zeros((0, 2), np.float64)
+    return Correspondences(z, z.copy(), z.copy(), z.copy(), np.zeros(0, np.int64),
+                           np.zeros(0, np.int64))
+
+
+def _as_grey_u8(img: np.ndarray, name: str, bits: int) -> tuple[np.ndarray, int]:
+    """Return a contiguous (H, W) uint8 image and the bit depth used to scale uint16 input."""
+    if not isinstance(img, np.ndarray):
+        raise ImageError(f'{name} image must be a numpy array, got {type(img).__name__}')
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim != 2:
+        raise ImageError(f'{name} image must be grey (H, W), got shape {img.shape}')
+    if img.shape[0] < 2 or img.shape[1] < 2:
+        raise ImageError(f'{name} image is too small: {img.shape[1]}x{img.shape[0]}')
+    if img.dtype == np.uint8:
+        return np.ascontiguousarray(img), bits
+    if img.dtype == np.uint16:
+        # Scale by a bit depth that only grows (12-bit data in 16-bit containers stays bright
+        # and the scale stays constant between frames, as KLT assumes).
+        peak = int(img.max())
+        bits = max(bits, 8, peak.bit_length())
+        return cv2.convertScaleAbs(img, alpha=255.0 / (2 ** bits - 1)), bits
+    raise ImageError(f'{name} image must be uint8 or uint16, got {img.dtype}')
+
+
+def plan_detection(existing: np.ndarray, need: int, size: tuple[int, int],
+                   bcfg: BucketingConfig, blocked: np.ndarray | None = None) -> np.ndarray:
+    """
+    Choose the buckets to search for new corners.
+
+    The buckets below their quota (``bcfg.max_per_bucket``) that are not ``blocked`` are taken
+    emptiest first (ties in a fixed scattered order, not row by row) until their free slots
+    reach ``DETECTION_OVERSAMPLING * need``, so the detection cost follows the number of
+    features to replace. Without existing features every bucket is searched.
+
+    Parameters
+    ----------
+    existing : np.ndarray
+        (N, 2) float pixel positions of the tracked features.
+    need : int
+        Number of features to add.
+    size : tuple
+        Image (width, height) in pixels.
+    bcfg : BucketingConfig
+        The bucketing grid.
+    blocked : np.ndarray or None
+        (rows, cols) bool buckets to skip (recently found empty); ignored when there are no
+        existing features.
+
+    Returns
+    -------
+    np.ndarray
+        (rows, cols) bool chosen buckets.
+
+    """
+    occ = bucketing.occupancy(existing, size, bcfg)
+    free = np.clip(bcfg.max_per_bucket - occ, 0, None).ravel()
+    chosen = np.zeros(free.size, bool)
+    if len(existing) == 0:
+        chosen[free > 0] = True
+        return chosen.reshape(occ.shape)
+    if blocked is not None:
+        free = np.where(blocked.ravel(), 0, free)
+    scatter = np.random.default_rng(0).permutation(free.size)
+    order = np.lexsort((scatter, -free))
+    order = order[free[order] > 0]
+    cum = np.cumsum(free[order])
+    count = int(np.searchsorted(cum, DETECTION_OVERSAMPLING * need, side='left')) + 1
+    chosen[order[:count]] = True
+    return chosen.reshape(occ.shape)
+
+
+def _regions(chosen: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
+             ) -> tuple[list[tuple[int, int, int, int]], list[int]]:
+    """
+    Rectangles (x0, y0, x1, y1) of horizontal runs of chosen buckets (pixels, end exclusive).
+
+    Returns the rectangles and the number of buckets in each.
+    """
+    w, h = size
+    if not bcfg.enabled:
+        return [(0, 0, w, h)], [1]
+    m = bcfg.roi_margin_px
+    x0, y0, x1, y1 = m, m, w - m, h - m
+    if x1 <= x0 or y1 <= y0:
+        x0, y0, x1, y1 = 0, 0, w, h
+    xe = x0 + (x1 - x0) * np.arange(bcfg.cols + 1) / bcfg.cols
+    ye = y0 + (y1 - y0) * np.arange(bcfg.rows + 1) / bcfg.rows
+    rects, counts = [], []
+    for r in np.flatnonzero(chosen.any(axis=1)):
+        edges = np.diff(np.concatenate([[0], chosen[r].astype(np.int8), [0]]))
+        for c0, c1 in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+            rects.append((int(math.floor(xe[c0])), int(math.floor(ye[r])),
+                          int(math.ceil(xe[c1])), int(math.ceil(ye[r + 1]))))
+            counts.append(int(c1 - c0))
+    return rects, counts
+
+
+def _bucket_ids(points: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
+                ) -> np.ndarray:
+    """(N,) int64 bucket indices of points inside the region of interest."""
+    idx = bucketing.bucket_index(points, size, bcfg)
+    return idx[idx >= 0]
+
+
+def _far_from(points: np.ndarray, origin: tuple[int, int], shape: tuple[int, int],
+              radius: float) -> np.ndarray | None:
+    """
+    (H, W) bool: pixels of a window farther than ``radius`` from every point, or None.
+
+    ``origin`` is the (x, y) pixel of the window's top-left corner, ``shape`` its (H, W).
+    """
+    r = int(math.ceil(radius))
+    ox, oy = origin
+    hh, ww = shape
+    rel = np.round(points - np.array([ox - r, oy - r])).astype(np.int64)
+    inside = (rel[:, 0] >= 0) & (rel[:, 1] >= 0) & (rel[:, 0] < ww + 2 * r) & \
+        (rel[:, 1] < hh + 2 * r)
+    if not inside.any():
+        return None
+    canvas = np.full((hh + 2 * r, ww + 2 * r), 255, np.uint8)
+    canvas[rel[inside, 1], rel[inside, 0]] = 0
+    dist = cv2.distanceTransform(canvas, cv2.DIST_L2, 3)
+    return dist[r:r + hh, r:r + ww] >= radius
+
+
+def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: TrackerConfig,
+                   bcfg: BucketingConfig, chosen: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Detect Shi-Tomasi corners only where features are missing.
+
+    Detection runs on crops of the ``chosen`` buckets (whole image with bucketing disabled),
+    masked to stay ``cfg.min_distance_px`` away from the existing features; the candidates are
+    spread with ``bucketing.select`` (at most ``bcfg.max_per_bucket`` per bucket, counting the
+    existing features) and ordered round-robin over the buckets (best corner of every bucket
+    first).
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) uint8 grey image.
+    existing : np.ndarray
+        (N, 2) float raw pixel positions of the features already tracked in ``img``.
+    need : int
+        Maximum number of corners to return.
+    cfg, bcfg : TrackerConfig, BucketingConfig
+        Detector and bucketing settings.
+    chosen : np.ndarray or None
+        (rows, cols) bool buckets to search; None: ``plan_detection`` without blocked buckets.
+
+    Returns
+    -------
+    corners : np.ndarray
+        (M, 2) float32 raw pixel positions, M <= need, best first.
+    found : np.ndarray
+        (rows * cols,) int64 corners found per bucket before the ``need`` cut (empty with
+        bucketing disabled).
+
+    """
+    h, w = img.shape
+    n_buckets = bcfg.rows * bcfg.cols if bcfg.enabled else 0
+    empty = np.zeros((0, 2), np.float32), np.zeros(n_buckets, np.int64)
+    if need <= 0:
+        return empty
+    existing = np.asarray(existing, np.float64).reshape(-1, 2)
+    if bcfg.enabled and chosen is None:
+        chosen = plan_detection(existing, need, (w, h), bcfg)
+    pad = cfg.block_size // 2 + 2
+    found, ranks = [], []
+    for (x0, y0, x1, y1), count in zip(*_regions(chosen, (w, h), bcfg)):
+        cx0, cy0 = max(x0 - pad, 0), max(y0 - pad, 0)
+        cx1, cy1 = min(x1 + pad, w), min(y1 + pad, h)
+        mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
+        mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
+        if len(existing):
+            far = _far_from(existing, (cx0, cy0), mask.shape, cfg.min_distance_px)
+            if far is not None:
+                mask[~far] = 0
+        limit = need if not bcfg.enabled else 2 * count * bcfg.max_per_bucket
+        corners = cv2.goodFeaturesToTrack(
+            img[cy0:cy1, cx0:cx1], maxCorners=int(limit), qualityLevel=cfg.quality_level,
+            minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
+        if corners is None or len(corners) == 0:
+            continue
+        found.append(corners.reshape(-1, 2) + np.array([cx0, cy0], np.float32))
+        ranks.append(np.arange(len(corners)))
+    if not found:
+        return empty
+    cand = np.concatenate(found).astype(np.float32)
+    rank = np.concatenate(ranks).astype(np.float64)
+    if not bcfg.enabled:
+        return cand[np.argsort(rank, kind='stable')][:need], empty[1]
+    # Per-bucket quota: existing features first, then candidates by their rank in their crop.
+    allpts = np.vstack([existing, cand.astype(np.float64)])
+    prio = np.concatenate([np.full(len(existing), 1e12), -rank])
+    keep = bucketing.select(allpts, (w, h), bcfg, prio)[len(existing):]
+    cand, rank = cand[keep], rank[keep]
+    # Candidates of neighbouring crops may be too close: drop the worse of such pairs.
+    if len(cand) > 1:
+        d = np.linalg.norm(cand[:, None, :] - cand[None, :, :], axis=2)
+        order = np.arange(len(cand))
+        worse = (rank[None, :] > rank[:, None]) | (
+            (rank[None, :] == rank[:, None]) & (order[None, :] > order[:, None]))
+        clash = ((d < cfg.min_distance_px) & worse).any(axis=0)
+        cand, rank = cand[~clash], rank[~clash]
+    idx = bucketing.bucket_index(cand, (w, h), bcfg)
+    per_bucket = np.bincount(idx[idx >= 0], minlength=n_buckets).astype(np.int64)
+    # Round robin over buckets: the best corner of every bucket, then the second, ...
+    order = np.lexsort((rank, idx))
+    sorted_idx = idx[order]
+    in_bucket = np.arange(len(order)) - np.searchsorted(sorted_idx, sorted_idx, side='left')
+    round_robin = order[np.lexsort((rank[order], in_bucket))]
+    return cand[round_robin][:need], per_bucket
+
+
+class StereoTracker:
+    """
+    Stereo KLT tracker (paper 2): one call per stereo pair.
+
+    Parameters
+    ----------
+    tracker_cfg : TrackerConfig
+        Detector, KLT and check settings (``variant`` and ``bicircular_mode`` choose the checks).
+    bucketing_cfg : BucketingConfig
+        Grid used to spread new features.
+
+    Raises
+    ------
+    ConfigError
+        Unknown variant or bi-circular mode, or an even KLT window.
+
+    """
+
+    def __init__(self, tracker_cfg: TrackerConfig | None = None,
+                 bucketing_cfg: BucketingConfig | None = None) -> None:
+        self.configure(tracker_cfg or TrackerConfig(), bucketing_cfg or BucketingConfig())
+        self._next_id = 0
+        self.reset()
+
+    def configure(self, tracker_cfg: TrackerConfig, bucketing_cfg: BucketingConfig) -> None:
+        """Replace the settings; the tracked features are kept (thresholds apply next frame)."""
+        checks = CheckSet.for_variant(tracker_cfg.variant)
+        if tracker_cfg.bicircular_mode not in BICIRCULAR_MODES:
+            raise ConfigError(f'tracker.bicircular_mode must be one of {list(BICIRCULAR_MODES)}'
+                              f', got {tracker_cfg.bicircular_mode!r}')
+        if tracker_cfg.win_size_px % 2 == 0:
+            raise ConfigError(
+                f'tracker.win_size_px must be odd, got {tracker_cfg.win_size_px}')
+        self.cfg = tracker_cfg
+        self.bucketing_cfg = bucketing_cfg
+        self._checks = (tracker_cfg.variant, checks)
+
+    @property
+    def checks(self) -> CheckSet:
+        """Return the checks of ``cfg.variant`` (follows direct assignments to ``cfg``)."""
+        if self._checks[0] != self.cfg.variant:
+            self._checks = (self.cfg.variant, CheckSet.for_variant(self.cfg.variant))
+        return self._checks[1]
+
+    def reset(self) -> None:
+        """Forget every feature and the previous images; the next pair re-initialises."""
+        self._calib: StereoCalibration | None = None
+        self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        self._feats = _Features.empty()
+        self._bits = 8
+        self._barren: np.ndarray | None = None  # (rows, cols) frames to skip each bucket
+
+    @property
+    def num_features(self) -> int:
+        """Return the number of features alive after the last pair."""
+        return len(self._feats)
+
+    # -- public API ---------------------------------------------------------------------
+    def track(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
+              prior: Prior | None = None) -> TrackResult:
+        """
+        Track the features into a new stereo pair and replenish them.
+
+        Parameters
+        ----------
+        left, right : np.ndarray
+            (H, W) uint8 or uint16 grey images of the current pair (rectified or raw, as
+            ``calib.kind`` says); uint16 is scaled to uint8.
+        calib : StereoCalibration
+            Calibration of the pair; its image size must match the images.
+        prior : callable or None
+            Motion prior ``(prev_left_ideal, prev_right_ideal) -> (cur_left_pred,
+            cur_right_pred)``, (N, 2) float64 ideal pixels each; used as the KLT initial flow
+            with ``predicted_pyramid_levels`` when ``use_motion_prior`` is set.
+
+        Returns
+        -------
+        TrackResult
+            Quadruples (empty on the first frame, after ``reset`` or when the calibration or
+            the image size changed), raw positions and statistics.
+
+        Raises
+        ------
+        ImageError
+            Images that are not grey uint8/uint16, differ in size, or do not match the
+            calibration's image size.
+
+        """
+        t_start = CLOCK()
+        left8, self._bits = _as_grey_u8(left, 'left', self._bits)
+        right8, self._bits = _as_grey_u8(right, 'right', self._bits)
+        if left8.shape != right8.shape:
+            raise ImageError(f'left and right images differ in size: {left8.shape[::-1]} vs '
+                             f'{right8.shape[::-1]}')
+        if tuple(calib.size) != (left8.shape[1], left8.shape[0]):
+            raise ImageError(f'image size {left8.shape[1]}x{left8.shape[0]} does not match the '
+                             f'calibration size {calib.size[0]}x{calib.size[1]}')
+        stats = TrackerStats()
+        if self._prev is None or self._prev[0].shape != left8.shape or \
+                not calib.same_as(self._calib):
+            if self._prev is not None:
+                logger.info('tracker re-initialised: new calibration or image size %dx%d',
+                            left8.shape[1], left8.shape[0])
+            self._feats = _Features.empty()
+            self._barren = None
+            self._calib = calib
+            stats.initialized = True
+            corr, raw = _empty_correspondences(), _empty_correspondences()
+        else:
+            corr, raw = self._track_existing(left8, right8, calib, prior, stats)
+        self._replenish(left8, right8, calib, stats)
+        # Own copies: the caller may reuse its image buffers.
+        self._prev = (left8.copy() if np.may_share_memory(left8, left) else left8,
+                      right8.copy() if np.may_share_memory(right8, right) else right8)
+        stats.n_features = len(self._feats)
+        stats.timings_ms['total'] = (CLOCK() - t_start) * 1e3
+        f = self._feats
+        return TrackResult(corr, raw, f.left_raw.astype(np.float64),
+                           f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
+
+    # -- stages -----------------------------------------------------------------------
+    def _predict(self, prior: Prior, calib: StereoCalibration
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Raw-pixel predictions (N, 2) of left and right positions at t2, or None."""
+        f = self._feats
+        pred_l, pred_r = prior(f.left_ideal.copy(), f.right_ideal.copy())
+        pred_l = np.asarray(pred_l, np.float64)
+        pred_r = np.asarray(pred_r, np.float64)
+        if pred_l.shape != (len(f), 2) or pred_r.shape != (len(f), 2):
+            logger.warning('motion prior returned shapes %s and %s for %d features; ignored',
+                           pred_l.shape, pred_r.shape, len(f))
+            return None
+        bad = ~(np.all(np.isfinite(pred_l), axis=1) & np.all(np.isfinite(pred_r), axis=1))
+        pred_l = np.where(bad[:, None], f.left_ideal, pred_l)
+        pred_r = np.where(bad[:, None], f.right_ideal, pred_r)
+        raw_l, raw_r = calib.distort_left(pred_l), calib.distort_right(pred_r)
+        raw_l[bad] = np.nan  # lk_pass starts these at the previous position
+        raw_r[bad] = np.nan
+        return raw_l, raw_r
+
+    def _track_existing(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
+                        prior: Prior | None, stats: TrackerStats
+                        ) -> tuple[Correspondences, Correspondences]:
+        """Track the features of t1 into the pair t2 through every enabled check."""
+        cfg, checks = self.cfg, self.checks
+        prev_left, prev_right = self._prev
+        f = self._feats
+        n_prev = len(f)
+        stats.n_previous = n_prev
+        win, iters = cfg.win_size_px, cfg.max_iterations
+        clock = CLOCK
+        ms, npts, failed = stats.timings_ms, stats.pass_points, stats.failed
+
+        # 1. Temporal pass left(t1) -> left(t2) and forward-backward check (eq. 4).
+        pred = None
+        if prior is not None and cfg.use_motion_prior and n_prev:
+            pred = self._predict(prior, calib)
+        stats.used_prior = pred is not None
+        t = clock()
+        levels = cfg.predicted_pyramid_levels if pred is not None else cfg.pyramid_levels
+        npts['temporal_fwd'] = n_prev
+        cur_l, ok = lk_pass(prev_left, left, f.left_raw, None if pred is None else pred[0],
+                            levels, win, iters)
+        ms['temporal_fwd'] = (clock() - t) * 1e3
+        failed['temporal'] = int(np.count_nonzero(~ok))
+        alive = np.flatnonzero(ok)
+
+        t = clock()
+        npts['temporal_bwd'] = len(alive)
+        back, ok = lk_pass(left, prev_left, cur_l[alive], f.left_raw[alive],
+                           REVERSE_PYRAMID_LEVELS, win, iters)
+        ok &= round_trip_error(f.left_raw[alive], back) < cfg.fb_threshold_px
+        ms['temporal_bwd'] = (clock() - t) * 1e3
+        failed['fb'] = int(np.count_nonzero(~ok))
+        alive = alive[ok]
+
+        # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
+        #    disparity constraint (eq. 6) and range run before the reverse pass.
+        t = clock()
+        offset = (f.right_raw[alive] - f.left_raw[alive]).astype(np.float64)
+        if pred is not None:
+            predicted = pred[1][alive] - pred[0][alive]
+            offset = np.where(np.isfinite(predicted), predicted, offset)
+        npts['stereo_fwd'] = len(alive)
+        cur_r, ok = lk_pass(left, right, cur_l[alive], cur_l[alive] + offset,
+                            cfg.predicted_pyramid_levels, win, iters)
+        failed['stereo'] = int(np.count_nonzero(~ok))
+        alive, cur_r = alive[ok], cur_r[ok]
+        ideal_l = calib.undistort_left(cur_l[alive])
+        ideal_r = calib.undistort_right(cur_r)
+
+        def range_check() -> np.ndarray:
+            return disparity_in_range(calib, ideal_l, ideal_r, cfg.min_disparity_px,
+                                      cfg.max_disparity_px)
+
+        if checks.disparity_constraint:
+            ok = disparity_constraint(calib, ideal_l, ideal_r, cfg.disparity_y_threshold_px)
+            failed['dc'] = int(np.count_nonzero(~ok))
+            rng = range_check()
+            failed['disparity'] = int(np.count_nonzero(ok & ~rng))
+            ok &= rng
+            alive, cur_r, ideal_l, ideal_r = alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok]
+        ms['stereo_fwd'] = (clock() - t) * 1e3
+
+        # Left-right check (eq. 5); without the disparity constraint the range check follows.
+        t = clock()
+        npts['stereo_bwd'] = len(alive)
+        back, ok = lk_pass(right, left, cur_r, cur_l[alive], REVERSE_PYRAMID_LEVELS, win, iters)
+        ok &= round_trip_error(cur_l[alive], back) < cfg.lr_threshold_px
+        failed['lr'] = int(np.count_nonzero(~ok))
+        if not checks.disparity_constraint:
+            rng = range_check()
+            failed['disparity'] = int(np.count_nonzero(ok & ~rng))
+            ok &= rng
+        alive, cur_r, ideal_l, ideal_r = alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok]
+        ms['stereo_bwd'] = (clock() - t) * 1e3
+
+        ages = f.ages[alive] + 1
+        stats.loss = n_prev - len(alive)
+        stats.maxtrack = int(ages.max()) if len(ages) else 0
+        # 3. Light bi-circular check (eq. 7) with a fixed or adaptive (eq. 8) threshold.
+        if checks.bicircular and len(alive):
+            t = clock()
+            delta_d = bicircular_threshold(cfg, stats.loss, stats.maxtrack)
+            stats.delta_d_px = delta_d
+            npts['bicircular'] = len(alive)
+            # Start right(t1) from right(t2) moved back by the measured left flow.
+            guess = cur_r + (f.left_raw[alive] - cur_l[alive])
+            back_r, ok = lk_pass(right, prev_right, cur_r, guess, cfg.predicted_pyramid_levels,
+                                 win, iters)
+            again = None
+            if cfg.bicircular_mode == 'roundtrip':
+                again = np.full_like(cur_r, np.nan)
+                again[ok], ok2 = lk_pass(prev_right, right, back_r[ok], cur_r[ok],
+                                         REVERSE_PYRAMID_LEVELS, win, iters)
+                ok[ok] = ok2
+            err = bicircular_error(cfg.bicircular_mode, cur_r, back_r, f.right_raw[alive], again)
+            ok &= err < delta_d
+            failed['bc'] = int(np.count_nonzero(~ok))
+            alive, cur_r, ideal_l, ideal_r, ages = (
+                alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok], ages[ok])
+            ms['bicircular'] = (clock() - t) * 1e3
+
+        stats.n_tracked = len(alive)
+        prev = f.take(alive)
+        cur_l = cur_l[alive]
+        corr = Correspondences(prev.left_ideal.copy(), prev.right_ideal.copy(), ideal_l.copy(),
+                               ideal_r.copy(), prev.ids.copy(), ages.copy())
+        raw = Correspondences(prev.left_raw.astype(np.float64),
+                              prev.right_raw.astype(np.float64), cur_l.astype(np.float64),
+                              cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
+        self._feats = _Features(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
+        return corr, raw
+
+    def _replenish(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
+                   stats: TrackerStats) -> None:
+        """Detect corners where features are missing and match them into the right image."""
+        cfg, f = self.cfg, self._feats
+        need = cfg.max_features - len(f)
+        if need <= 0:
+            return
+        win, iters = cfg.win_size_px, cfg.max_iterations
+        bcfg = self.bucketing_cfg
+        size = (left.shape[1], left.shape[0])
+        t = CLOCK()
+        chosen = None
+        if bcfg.enabled:
+            if self._barren is None or self._barren.shape != (bcfg.rows, bcfg.cols):
+                self._barren = np.zeros((bcfg.rows, bcfg.cols), np.int64)
+            chosen = plan_detection(f.left_raw, need, size, bcfg, self._barren > 0)
+            self._barren = np.maximum(self._barren - 1, 0)
+        pts, found = detect_corners(left, f.left_raw, need, cfg, bcfg, chosen)
+        stats.timings_ms['detection'] = (CLOCK() - t) * 1e3
+        stats.n_detected = len(pts)
+        if chosen is not None and len(pts):
+            # Buckets searched without a corner are skipped for a while (not when the whole
+            # image gave nothing: a black or covered frame says nothing about the scene).
+            self._barren[chosen & (found.reshape(chosen.shape) == 0)] = BARREN_BUCKET_FRAMES
+        if not len(pts):
+            return
+        submitted = pts
+        t = CLOCK()
+        # Corners near a tracked feature start at its disparity (raw pixel offset) and need
+        # few pyramid levels; the others are searched with the full pyramid.
+        guided = np.zeros(len(pts), bool)
+        guess = pts.copy()
+        if len(f):
+            d2 = ((pts[:, None, :] - f.left_raw[None, :, :]) ** 2).sum(axis=2)
+            nearest = np.argmin(d2, axis=1)
+            guided = d2[np.arange(len(pts)), nearest] <= NEIGHBOUR_RADIUS_PX ** 2
+            guess = pts + (f.right_raw[nearest] - f.left_raw[nearest])
+        pr = np.empty_like(pts)
+        ok = np.zeros(len(pts), bool)
+        stats.pass_points['new_stereo_fwd'] = len(pts)
+        for sel, levels in ((guided, cfg.predicted_pyramid_levels),
+                            (~guided, cfg.pyramid_levels)):
+            if sel.any():
+                pr[sel], ok[sel] = lk_pass(left, right, pts[sel], guess[sel], levels, win, iters)
+        pts, pr = pts[ok], pr[ok]
+        il, ir = calib.undistort_left(pts), calib.undistort_right(pr)
+        ok = disparity_in_range(calib, il, ir, cfg.min_disparity_px, cfg.max_disparity_px)
+        if self.checks.disparity_constraint:
+            ok &= disparity_constraint(calib, il, ir, cfg.disparity_y_threshold_px)
+        pts, pr, il, ir = pts[ok], pr[ok], il[ok], ir[ok]
+        stats.timings_ms['stereo_fwd'] += (CLOCK() - t) * 1e3
+        t = CLOCK()
+        stats.pass_points['new_stereo_bwd'] = len(pts)
+        back, ok = lk_pass(right, left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
+        ok &= round_trip_error(pts, back) < cfg.lr_threshold_px
+        stats.timings_ms['stereo_bwd'] += (CLOCK() - t) * 1e3
+        n = int(np.count_nonzero(ok))
+        stats.n_added = n
+        if chosen is not None and n:
+            # Buckets whose corners all failed the stereo match are skipped for a while.
+            tried = np.bincount(_bucket_ids(submitted, size, bcfg), minlength=chosen.size)
+            kept = np.bincount(_bucket_ids(pts[ok], size, bcfg), minlength=chosen.size)
+            self._barren[((tried > 0) & (kept == 0)).reshape(chosen.shape)] = \
+                BARREN_BUCKET_FRAMES
+        if not n:
+            return
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        new = _Features(ids, np.zeros(n, np.int64), pts[ok].astype(np.float32),
+                        pr[ok].astype(np.float32), il[ok], ir[ok])
+        self._feats = f.concat(new)
