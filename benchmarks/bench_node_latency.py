@@ -1,0 +1,231 @@
+"""
+Benchmark of the ROS 2 node: image-to-odometry latency and the highest sustained input rate.
+
+The node runs as a separate process (the installed ``stereo_vo_node`` entry point, or
+``python -m stereo_vo_ros.ros.node``) with reliable QoS on its own ROS_DOMAIN_ID; this
+process publishes 1241x376 stereo pairs (a KITTI clip of the data folder when present,
+otherwise a rendered synthetic city sequence) with camera_info and receives the odometry.
+
+1. Latency: pairs published at ``--latency-rate`` Hz (well below capacity); latency is the
+   wall time from publishing the left image to receiving the odometry with its stamp (image
+   conversion, DDS transport of two 467 kB images, pairing, processing, odometry transport).
+   Prints median, p90 and max (ms) and the node's own processing time from /diagnostics.
+2. Sustained rate: pairs published at increasing rates for ``--seconds`` each; a rate is
+   sustained when at least 97 % of the pairs give odometry (the node drops the others, newest
+   wins). Prints, per rate, the odometry rate and the dropped pairs; then the highest
+   sustained rate.
+
+Stamps advance by the clip's frame period whatever the publish rate, and the frames are
+played forwards then backwards (no jump in the scene), so the odometry keeps tracking.
+
+Targets (issue "The ROS 2 node"): median latency <= 30 ms, sustained >= 30 Hz.
+
+Usage::
+
+    python benchmarks/bench_node_latency.py [--data /work/shared/data] [--frames 40]
+        [--rates 10 15 20 30 40 60] [--seconds 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+import rclpy  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+from stereo_vo_ros.ros import conversions as conv  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DOMAIN_ID = 1 + (os.getpid() * 13 + 5) % 200
+KITTI_CLIP = 'kitti01_f0000-0050'
+
+
+def load_frames(data: Path, n: int):
+    """Return (left list, right list, P0, P1, frame period s) at 1241x376."""
+    clip = data / KITTI_CLIP
+    if (clip / 'calib.txt').exists():
+        calib = {line.split(':')[0]: np.array(line.split()[1:], float).reshape(3, 4)
+                 for line in (clip / 'calib.txt').read_text().splitlines() if line.strip()}
+        names = sorted((clip / 'image_0').glob('*.png'))[:n]
+        left = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in names]
+        right = [cv2.imread(str(clip / 'image_1' / p.name), cv2.IMREAD_GRAYSCALE)
+                 for p in names]
+        print(f'frames: {len(left)} of {clip} ({left[0].shape[1]}x{left[0].shape[0]})')
+        return left, right, calib['P0'], calib['P1'], 0.1
+    from stereo_vo_ros.synthetic import render_sequence, SequenceSpec
+    spec = SequenceSpec.preset('urban', n_frames=n)
+    frames = list(render_sequence(spec))
+    P0, P1 = spec.projections()
+    print(f'frames: {n} rendered ({spec.width}x{spec.height}; {clip} not found)')
+    return [f.left for f in frames], [f.right for f in frames], P0, P1, 1.0 / spec.frame_rate_hz
+
+
+class Bench(Node):
+    """Publishes stereo pairs and records when the odometry of each stamp arrives."""
+
+    def __init__(self, context: Context, left, right, P0, P1, period_s: float) -> None:
+        super().__init__('bench_node_latency', context=context)
+        qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        self.pubs = {name: self.create_publisher(Image if 'image' in name else CameraInfo,
+                                                 name, qos)
+                     for name in ('left/image_rect', 'right/image_rect', 'left/camera_info',
+                                  'right/camera_info')}
+        h, w = left[0].shape
+        self.infos = (conv.camera_info_from_matrices(P0, w, h, frame_id='camera_left'),
+                      conv.camera_info_from_matrices(P1, w, h, frame_id='camera_right'))
+        self.left, self.right, self.period_ns = left, right, int(period_s * 1e9)
+        order = list(range(len(left))) + list(range(len(left) - 2, 0, -1))
+        self.order = order
+        self.k = 0
+        self.stamp_ns = 1_000_000_000
+        self.sent: dict[int, float] = {}
+        self.received: dict[int, float] = {}
+        self.processing_ms: list[float] = []
+        self.lock = threading.Lock()
+        self.create_subscription(Odometry, 'odom', self._on_odom, 100)
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+
+    def _on_odom(self, msg: Odometry) -> None:
+        now = time.perf_counter()
+        with self.lock:
+            self.received[conv.nanoseconds_from_time(msg.header.stamp)] = now
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if 'processing_ms' in values:
+                self.processing_ms.append(float(values['processing_ms']))
+
+    def publish_pair(self) -> int:
+        """Publish the next pair (images built beforehand are not reused: fresh messages)."""
+        i = self.order[self.k % len(self.order)]
+        self.k += 1
+        self.stamp_ns += self.period_ns
+        stamp = conv.time_from_nanoseconds(self.stamp_ns)
+        left = conv.image_from_numpy(self.left[i], 'mono8', stamp, 'camera_left')
+        right = conv.image_from_numpy(self.right[i], 'mono8', stamp, 'camera_right')
+        for info, name in zip(self.infos, ('left/camera_info', 'right/camera_info')):
+            info.header.stamp = stamp
+            self.pubs[name].publish(info)
+        t = time.perf_counter()
+        self.pubs['left/image_rect'].publish(left)
+        self.pubs['right/image_rect'].publish(right)
+        with self.lock:
+            self.sent[self.stamp_ns] = t
+        return self.stamp_ns
+
+
+def publish_at(bench: Bench, rate_hz: float, seconds: float) -> list[int]:
+    """Publish pairs at ``rate_hz`` for ``seconds``; return their stamps."""
+    stamps = []
+    period = 1.0 / rate_hz
+    t0 = time.perf_counter()
+    n = int(round(rate_hz * seconds))
+    for k in range(n):
+        target = t0 + k * period
+        delay = target - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        stamps.append(bench.publish_pair())
+    return stamps
+
+
+def main() -> int:
+    """Run the benchmark and print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--data', type=Path, default=Path('/work/shared/data'))
+    parser.add_argument('--frames', type=int, default=40)
+    parser.add_argument('--latency-rate', type=float, default=5.0)
+    parser.add_argument('--latency-pairs', type=int, default=60)
+    parser.add_argument('--rates', type=float, nargs='+', default=[10, 15, 20, 30, 40, 60])
+    parser.add_argument('--seconds', type=float, default=4.0)
+    args = parser.parse_args()
+
+    left, right, P0, P1, period = load_frames(args.data, args.frames)
+    exe = Path(sys.executable).with_name('stereo_vo_node')
+    cmd = [str(exe)] if exe.exists() else [sys.executable, '-m', 'stereo_vo_ros.ros.node']
+    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONPATH=str(REPO_ROOT))
+    proc = subprocess.Popen(cmd + ['--ros-args', '-p', 'ros.qos:=reliable', '--log-level',
+                                   'error'], env=env)
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    bench = Bench(context, left, right, P0, P1, period)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(bench)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (
+                all(p.get_subscription_count() for p in bench.pubs.values()) and
+                bench.count_publishers('/odom')):
+            time.sleep(0.05)
+        time.sleep(1.0)
+        print(f'node: {" ".join(cmd)} (ROS_DOMAIN_ID={DOMAIN_ID})')
+
+        # 1. latency well below capacity (the first pairs warm the pipeline up)
+        publish_at(bench, args.latency_rate, 2.0)
+        stamps = publish_at(bench, args.latency_rate, args.latency_pairs / args.latency_rate)
+        time.sleep(1.0)
+        with bench.lock:
+            lat = np.array([(bench.received[s] - bench.sent[s]) * 1e3 for s in stamps
+                            if s in bench.received])
+        proc_ms = np.array(bench.processing_ms[-5:]) if bench.processing_ms else np.array([])
+        print(f'latency publish -> odometry at {args.latency_rate:g} Hz, 1241x376 mono8, '
+              f'{len(lat)}/{len(stamps)} pairs: median {np.median(lat):.1f} ms, '
+              f'p90 {np.percentile(lat, 90):.1f} ms, max {lat.max():.1f} ms')
+        if proc_ms.size:
+            print(f'node processing (diagnostics processing_ms, last samples): '
+                  f'{np.median(proc_ms):.1f} ms')
+
+        # 2. sustained input rate
+        sustained = 0.0
+        print(f'{"input Hz":>9} {"odom Hz":>8} {"pairs":>6} {"odom":>6} {"dropped":>8} '
+              f'{"median latency ms":>18}')
+        for rate in args.rates:
+            stamps = publish_at(bench, rate, args.seconds)
+            time.sleep(1.0)
+            with bench.lock:
+                got = [s for s in stamps if s in bench.received]
+                lat = [(bench.received[s] - bench.sent[s]) * 1e3 for s in got]
+                span = bench.received[got[-1]] - bench.received[got[0]] if len(got) > 1 else 0
+            odom_hz = (len(got) - 1) / span if span > 0 else 0.0
+            ok = len(got) >= 0.97 * len(stamps)
+            if ok:
+                sustained = max(sustained, rate)
+            print(f'{rate:9.1f} {odom_hz:8.1f} {len(stamps):6d} {len(got):6d} '
+                  f'{len(stamps) - len(got):8d} {np.median(lat) if lat else float("nan"):18.1f}'
+                  f'{"" if ok else "  (not sustained)"}')
+        print(f'highest sustained input rate: {sustained:g} Hz (>= 97 % of the pairs give '
+              f'odometry)')
+    finally:
+        executor.shutdown()
+        bench.destroy_node()
+        rclpy.try_shutdown(context=context)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,597 @@
+"""
+The ROS 2 node: stereo images in, REP-105 odometry out.
+
+Interface (names relative to the node's namespace, all remappable):
+
+* Subscribes ``left/image_rect``, ``right/image_rect`` (sensor_msgs/Image) and
+  ``left/camera_info``, ``right/camera_info`` (sensor_msgs/CameraInfo); sensor-data QoS by
+  default, reliable with ``ros.qos: reliable``. Images are paired by stamp (``ros.sync``:
+  exact, or approximate within ``ros.sync_slop_s``); the latest camera_info of each side is
+  used. ``~/set_pose`` (geometry_msgs/PoseWithCovarianceStamped): pose of the base frame in the
+  odom frame (header.frame_id empty or the odom frame) to continue from.
+* Publishes ``odom`` (nav_msgs/Odometry, odom frame -> base frame, stamped with the left image
+  stamp, twist in the base frame), ``path`` (nav_msgs/Path, at most ``ros.path_max_length``
+  poses, sent only while subscribed), ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz
+  wall time), ``~/debug_image`` (bgr8, drawn only while subscribed) and, when tf2_ros (or
+  tf2_msgs) is importable and ``ros.publish_tf`` is true, the odom -> base transform on /tf.
+* Services: ``~/reset`` (std_srvs/Trigger) restarts the odometry at the identity.
+* Parameters: every field of ``Config`` as ``section.name`` (read-only unless marked dynamic),
+  initial values from the parameter overrides (``--params-file``) else the defaults.
+
+Processing never queues: the image callbacks only pair messages and keep the newest pair in a
+one-slot mailbox; a worker thread owned by the node processes it and publishes the results, so
+any executor keeps receiving images while a pair is processed. A pair overwritten before it
+was processed is counted as dropped (newest wins). ``destroy_node`` stops the worker.
+"""
+
+from __future__ import annotations
+
+import array
+import collections
+import dataclasses
+import sys
+import threading
+import time
+import traceback
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry, Path
+import numpy as np
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+
+from . import conversions as conv
+from .sync import StereoPair, StereoSynchronizer
+from ..config import Config, from_flat
+from ..errors import CalibrationError, ConfigError, ImageError
+from ..pipeline import StereoOdometry
+from ..records import OdometryResult, StereoFrame, TrackingStatus
+
+try:  # optional: not part of the PyPI wheels used in CI
+    import tf2_ros
+except ImportError:  # pragma: no cover - depends on the install
+    tf2_ros = None
+try:
+    from tf2_msgs.msg import TFMessage
+except ImportError:  # pragma: no cover - depends on the install
+    TFMessage = None
+try:
+    import message_filters
+except ImportError:  # pragma: no cover - depends on the install
+    message_filters = None
+
+#: Queue length of the stereo synchroniser per side (messages).
+SYNC_QUEUE_SIZE = 10
+#: Seconds (wall) during which the last error keeps the diagnostics at ERROR.
+ERROR_HOLD_S = 5.0
+#: Seconds (wall) without a pair after which the diagnostics report stale input.
+STALE_INPUT_S = 3.0
+#: Seconds between repetitions of a throttled log line.
+LOG_THROTTLE_S = 5.0
+
+_LEVEL = {TrackingStatus.OK: DiagnosticStatus.OK,
+          TrackingStatus.INITIALIZING: DiagnosticStatus.OK,
+          TrackingStatus.DEGENERATE: DiagnosticStatus.WARN,
+          TrackingStatus.TOO_FEW_INLIERS: DiagnosticStatus.WARN,
+          TrackingStatus.LOST: DiagnosticStatus.ERROR}
+
+
+def parameter_descriptor(name: str, field: dataclasses.Field) -> ParameterDescriptor:
+    """
+    Build the ROS parameter descriptor of one ``Config`` field.
+
+    The description is the field's doc (plus its choices); integer and floating-point ranges
+    come from ``lo``/``hi``; the parameter is read-only unless the field is ``dynamic``.
+    Floating-point and list fields use dynamic typing so that a params file may write ``1``
+    for ``1.0``; ``Config`` then checks and converts the value.
+    """
+    meta = field.metadata
+    default = field.default if field.default is not dataclasses.MISSING else \
+        field.default_factory()
+    desc = ParameterDescriptor(name=name, description=str(meta.get('doc', '')),
+                               read_only=not meta.get('dynamic', False))
+    if meta.get('choices'):
+        desc.additional_constraints = 'one of: ' + ', '.join(meta['choices'])
+    lo, hi = meta.get('lo'), meta.get('hi')
+    if isinstance(default, bool):
+        pass
+    elif isinstance(default, int):
+        if lo is not None and hi is not None:
+            desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=0)]
+    elif isinstance(default, float):
+        desc.dynamic_typing = True
+        if lo is not None and hi is not None:
+            desc.floating_point_range = [
+                FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+    elif isinstance(default, list):
+        desc.dynamic_typing = True
+    return desc
+
+
+def _plain(value: Any) -> Any:
+    """Parameter value as Config expects it (arrays -> lists)."""
+    if isinstance(value, (array.array, tuple, np.ndarray)):
+        return list(value)
+    return value
+
+
+class StereoVONode(Node):
+    """
+    Stereo visual odometry node (see the module docstring for topics, services, parameters).
+
+    Parameters
+    ----------
+    **kwargs
+        Forwarded to ``rclpy.node.Node`` (``node_name`` defaults to ``stereo_vo``; pass
+        ``context``, ``parameter_overrides``, ``namespace``, ``cli_args`` to compose or test).
+
+    Raises
+    ------
+    ConfigError
+        A parameter override is not a valid configuration (unknown ``section.name``, wrong
+        type or out of range).
+
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        kwargs.setdefault('node_name', 'stereo_vo')
+        super().__init__(**kwargs)
+        self._fields: dict[str, dataclasses.Field] = {}
+        self._config = self._declare_config()
+        cfg = self._config.ros
+        self._pipeline = StereoOdometry(self._config)
+        self._pipeline_lock = threading.Lock()
+        self._slot_lock = threading.Condition()
+        self._stopping = False
+        self._slot: tuple[StereoPair, float] | None = None
+        self._waiting_pair: tuple[StereoPair, float] | None = None
+        self._info: dict[str, CameraInfo | None] = {'left': None, 'right': None}
+        self._calib_key: tuple | None = None
+        self._calib = None
+        self._T_base_cam: np.ndarray | None = None
+        self._path: collections.deque = collections.deque(maxlen=cfg.path_max_length)
+        self._counts = collections.Counter()
+        self._arrivals: collections.deque = collections.deque(maxlen=30)
+        self._last_pair_wall: float | None = None
+        self._last_error = ''
+        self._last_error_wall = -np.inf
+        self._waiting_for = ''
+        self._last_result: OdometryResult | None = None
+        self._last_latency_ms = float('nan')
+        self._warned: set[str] = set()
+
+        qos = qos_profile_sensor_data if cfg.qos == 'sensor_data' else \
+            QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+
+        self._odom_pub = self.create_publisher(Odometry, 'odom', 10)
+        self._path_pub = self.create_publisher(Path, 'path', 1)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._debug_pub = self.create_publisher(Image, '~/debug_image', 1) \
+            if cfg.publish_debug_image else None
+        self._setup_tf()
+
+        self.create_subscription(CameraInfo, 'left/camera_info',
+                                 lambda m: self._on_info('left', m), qos)
+        self.create_subscription(CameraInfo, 'right/camera_info',
+                                 lambda m: self._on_info('right', m), qos)
+        self._sync: StereoSynchronizer | None = None
+        if message_filters is not None:  # pragma: no cover - not installed in CI
+            subs = [message_filters.Subscriber(self, Image, topic, qos_profile=qos)
+                    for topic in ('left/image_rect', 'right/image_rect')]
+            if cfg.sync == 'exact':
+                self._mf_sync = message_filters.TimeSynchronizer(subs, SYNC_QUEUE_SIZE)
+            else:
+                self._mf_sync = message_filters.ApproximateTimeSynchronizer(
+                    subs, SYNC_QUEUE_SIZE, cfg.sync_slop_s)
+            self._mf_sync.registerCallback(self._on_synced_messages)
+        else:
+            self._sync = StereoSynchronizer(cfg.sync, cfg.sync_slop_s, SYNC_QUEUE_SIZE)
+            self._sync_lock = threading.Lock()
+            self.create_subscription(Image, 'left/image_rect',
+                                     lambda m: self._on_image('left', m), qos)
+            self.create_subscription(Image, 'right/image_rect',
+                                     lambda m: self._on_image('right', m), qos)
+
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.create_timer(1.0, self._publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._worker = threading.Thread(target=self._work, name='stereo_vo_worker', daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f'stereo VO ready: {self.resolve_topic_name("left/image_rect")} + '
+            f'{self.resolve_topic_name("right/image_rect")} ({cfg.sync} sync, {cfg.qos} QoS, '
+            f'{self._config.pipeline.input_kind} input, filter {self._config.filter.type}) -> '
+            f'{self.resolve_topic_name("odom")}')
+
+    # -- parameters --------------------------------------------------------------------
+    def _declare_config(self) -> Config:
+        """Declare every Config field as a parameter and build the Config from their values."""
+        values = {}
+        for name, default, field in Config().items():
+            self._fields[name] = field
+            param = self.declare_parameter(name, default, parameter_descriptor(name, field))
+            values[name] = _plain(param.value)
+        sections = {name.partition('.')[0] for name in self._fields}
+        overrides = getattr(self, '_parameter_overrides', {})  # rclpy keeps them here
+        unknown = sorted(n for n in overrides if n.partition('.')[0] in sections and
+                         n not in self._fields)
+        if unknown:
+            raise ConfigError(f'unknown parameter(s) {unknown}; see config/stereo_vo.yaml for '
+                              f'the known ones')
+        return from_flat(values)
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        updates = {}
+        for p in params:
+            field = self._fields.get(p.name)
+            if field is None:
+                continue  # use_sim_time and the like
+            if not field.metadata.get('dynamic', False):
+                return SetParametersResult(
+                    successful=False, reason=f'{p.name} cannot change at run time')
+            updates[p.name] = _plain(p.value)
+        if not updates:
+            return SetParametersResult(successful=True)
+        try:
+            config = self._config.replace(**updates)
+        except ConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        with self._pipeline_lock:
+            self._pipeline.update_config(config)
+            self._config = config
+            if self._path.maxlen != config.ros.path_max_length:
+                self._path = collections.deque(self._path, maxlen=config.ros.path_max_length)
+        self.get_logger().info(f'parameters updated: {updates}')
+        return SetParametersResult(successful=True)
+
+    @property
+    def config(self) -> Config:
+        """Return the configuration in force."""
+        return self._config
+
+    # -- transforms --------------------------------------------------------------------
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def _setup_tf(self) -> None:
+        cfg = self._config.ros
+        self._tf_broadcaster = None
+        self._tf_pub = None
+        self._tf_buffer = None
+        if tf2_ros is not None:  # pragma: no cover - not installed in CI
+            self._tf_buffer = tf2_ros.Buffer()
+            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
+        if not cfg.publish_tf:
+            return
+        if tf2_ros is not None:  # pragma: no cover
+            self._tf_broadcaster = tf2_ros.TransformBroadcaster(self)
+        elif TFMessage is not None:  # pragma: no cover
+            self._tf_pub = self.create_publisher(TFMessage, '/tf', 100)
+        else:
+            self._warn_once('tf', 'ros.publish_tf is true but neither tf2_ros nor tf2_msgs '
+                            'is importable: the odom -> base transform is NOT broadcast on '
+                            '/tf (the odom topic carries the same pose)')
+
+    def _base_from_camera(self, camera_frame: str) -> np.ndarray:
+        """Pose (4, 4) of the left camera optical frame in the base frame (fixed per run)."""
+        if self._T_base_cam is not None:
+            return self._T_base_cam
+        cfg = self._config.ros
+        reason = 'tf2_ros is not importable'
+        if self._tf_buffer is not None and camera_frame:  # pragma: no cover
+            try:
+                tf = self._tf_buffer.lookup_transform(cfg.base_frame, camera_frame,
+                                                      Time())
+                tr, ro = tf.transform.translation, tf.transform.rotation
+                self._T_base_cam = conv.transform_from_pose(tr, ro)
+                self.get_logger().info(f'{cfg.base_frame} <- {camera_frame} from TF')
+                return self._T_base_cam
+            except Exception as exc:  # tf2 raises several lookup errors
+                reason = f'TF lookup {cfg.base_frame} <- {camera_frame!r} failed: {exc}'
+        elif not camera_frame:
+            reason = 'the camera frame is unknown (empty frame_id and ros.camera_frame)'
+        self._T_base_cam = conv.transform_from_xyz_rpy(cfg.base_from_camera_xyz,
+                                                       cfg.base_from_camera_rpy_deg)
+        self.get_logger().warning(
+            f'{reason}: using the base <- camera transform from the parameters '
+            f'ros.base_from_camera_xyz={list(cfg.base_from_camera_xyz)} m and '
+            f'ros.base_from_camera_rpy_deg={list(cfg.base_from_camera_rpy_deg)} deg')
+        return self._T_base_cam
+
+    # -- inputs ------------------------------------------------------------------------
+    def _on_info(self, side: str, msg: CameraInfo) -> None:
+        self._info[side] = msg
+        if self._waiting_pair is not None:
+            self._release_waiting_pair()
+
+    def _release_waiting_pair(self) -> None:
+        """Hand a pair that came before the first camera_info to the worker, once both exist."""
+        if None in self._info.values():
+            return
+        with self._slot_lock:
+            if self._slot is None and self._waiting_pair is not None:
+                self._slot = self._waiting_pair
+                self._slot_lock.notify()
+            self._waiting_pair = None
+
+    def _on_image(self, side: str, msg: Image) -> None:
+        stamp_ns = conv.nanoseconds_from_time(msg.header.stamp)
+        with self._sync_lock:
+            pairs = self._sync.add(side, stamp_ns, msg)
+        for pair in pairs:
+            self._on_pair(pair)
+
+    def _on_synced_messages(self, left: Image, right: Image) -> None:  # pragma: no cover
+        self._on_pair(StereoPair(conv.nanoseconds_from_time(left.header.stamp),
+                                 conv.nanoseconds_from_time(right.header.stamp), left, right))
+
+    def _on_pair(self, pair: StereoPair) -> None:
+        now = time.monotonic()
+        self._arrivals.append(now)
+        self._last_pair_wall = now
+        self._counts['pairs'] += 1
+        with self._slot_lock:
+            if self._slot is not None:
+                self._counts['dropped'] += 1
+            self._slot = (pair, time.perf_counter())
+            self._slot_lock.notify()
+
+    # -- processing --------------------------------------------------------------------
+    def _error(self, text: str) -> None:
+        self._last_error = text
+        self._last_error_wall = time.monotonic()
+        self._counts['errors'] += 1
+        self.get_logger().error(text, throttle_duration_sec=LOG_THROTTLE_S)
+
+    def _calibration(self, left: CameraInfo, right: CameraInfo):
+        key = (conv.camera_info_key(left), conv.camera_info_key(right),
+               self._config.pipeline.input_kind)
+        if key != self._calib_key:
+            self._calib = conv.calibration_from_camera_info(left, right,
+                                                            self._config.pipeline.input_kind)
+            self._calib_key = key
+            self.get_logger().info(f'stereo calibration: {self._calib.size[0]}x'
+                                   f'{self._calib.size[1]} px, baseline '
+                                   f'{self._calib.baseline_m:.4f} m')
+        return self._calib
+
+    def _work(self) -> None:
+        """Worker thread: process the newest pair whenever there is one, until destroyed."""
+        while True:
+            with self._slot_lock:
+                while self._slot is None and not self._stopping:
+                    self._slot_lock.wait()
+                if self._stopping:
+                    return
+                item, self._slot = self._slot, None
+            self._process(*item)
+
+    def destroy_node(self) -> None:
+        """Stop the worker thread, then destroy the node."""
+        with self._slot_lock:
+            self._stopping = True
+            self._slot_lock.notify()
+        if self._worker.is_alive() and self._worker is not threading.current_thread():
+            self._worker.join(timeout=10.0)
+        super().destroy_node()
+
+    def _process(self, pair: StereoPair, t_arrival: float) -> None:
+        left_info, right_info = self._info['left'], self._info['right']
+        if left_info is None or right_info is None:
+            missing = [self.resolve_topic_name(f'{s}/camera_info')
+                       for s in ('left', 'right') if self._info[s] is None]
+            self._waiting_for = 'camera_info on ' + ', '.join(missing)
+            self._counts['without_camera_info'] += 1
+            with self._slot_lock:
+                self._waiting_pair = (pair, t_arrival)
+            self._release_waiting_pair()  # in case it arrived meanwhile
+            self.get_logger().warning(f'waiting for {self._waiting_for}',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        self._waiting_for = ''
+        try:
+            calib = self._calibration(left_info, right_info)
+            frame = StereoFrame(conv.grey_from_image(pair.left), conv.grey_from_image(pair.right),
+                                pair.stamp_ns * 1e-9, calib)
+            with self._pipeline_lock:
+                result = self._pipeline.process(frame)
+        except (ImageError, CalibrationError) as exc:
+            self._error(f'{type(exc).__name__}: {exc}')
+            return
+        except Exception as exc:  # never let a bug kill the node: log it, report it
+            self._error(f'{type(exc).__name__} while processing: {exc}\n'
+                        f'{traceback.format_exc()}')
+            return
+        if not result.accepted:
+            self._counts['ignored'] += 1
+            self.get_logger().warning(f'frame ignored: {result.message}',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        self._publish(pair, result)
+        self._last_latency_ms = (time.perf_counter() - t_arrival) * 1e3
+
+    def _publish(self, pair: StereoPair, result: OdometryResult) -> None:
+        cfg = self._config.ros
+        camera_frame = cfg.camera_frame or pair.left.header.frame_id
+        odom = conv.base_odometry_from_result(result, self._base_from_camera(camera_frame))
+        self._last_result = result
+        self._counts['processed'] += 1
+        if not odom.is_finite():
+            self._counts['non_finite'] += 1
+            self.get_logger().error(
+                f'non-finite odometry at {pair.stamp_ns * 1e-9:.9f} s ({result.status.value}): '
+                'not published', throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        if result.status is not TrackingStatus.OK and \
+                result.status is not TrackingStatus.INITIALIZING:
+            self.get_logger().warning(f'tracking {result.status.value}: {result.message}',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+        stamp = pair.left.header.stamp
+        self._odom_pub.publish(conv.odometry_msg(odom, stamp, cfg.odom_frame, cfg.base_frame))
+        self._counts['published'] += 1
+        self._path.append(conv.pose_stamped_msg(odom.T_odom_base, stamp, cfg.odom_frame))
+        if self._path_pub.get_subscription_count() > 0:
+            path = Path()
+            path.header.stamp = stamp
+            path.header.frame_id = cfg.odom_frame
+            path.poses = list(self._path)
+            self._path_pub.publish(path)
+        if self._tf_broadcaster is not None or self._tf_pub is not None:  # pragma: no cover
+            if cfg.invert_tf:
+                tf = conv.transform_msg(np.linalg.inv(odom.T_odom_base), stamp, cfg.base_frame,
+                                        cfg.odom_frame)
+            else:
+                tf = conv.transform_msg(odom.T_odom_base, stamp, cfg.odom_frame, cfg.base_frame)
+            if self._tf_broadcaster is not None:
+                self._tf_broadcaster.sendTransform(tf)
+            else:
+                self._tf_pub.publish(TFMessage(transforms=[tf]))
+        if self._debug_pub is not None and self._debug_pub.get_subscription_count() > 0:
+            img = conv.debug_image(conv.grey_from_image(pair.left), result.features,
+                                   result.inliers)
+            self._debug_pub.publish(conv.image_from_numpy(img, 'bgr8', stamp, camera_frame))
+
+    # -- services ----------------------------------------------------------------------
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        with self._pipeline_lock:
+            self._pipeline.reset()
+            self._path.clear()
+            if self._sync is not None:
+                with self._sync_lock:
+                    self._sync.reset()
+            with self._slot_lock:
+                self._slot = None
+        self._counts['resets'] += 1
+        self.get_logger().info('odometry reset: the next pair starts at the identity')
+        response.success = True
+        response.message = 'odometry reset; the next stereo pair starts at the identity pose'
+        return response
+
+    def _on_set_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        cfg = self._config.ros
+        if msg.header.frame_id not in ('', cfg.odom_frame):
+            self.get_logger().error(f'~/set_pose ignored: frame {msg.header.frame_id!r} is not '
+                                    f'the odom frame {cfg.odom_frame!r}')
+            return
+        try:
+            T_odom_base = conv.transform_from_pose(msg.pose.pose.position,
+                                                   msg.pose.pose.orientation)
+        except ValueError as exc:
+            self.get_logger().error(f'~/set_pose ignored: {exc}')
+            return
+        cov = np.asarray(msg.pose.covariance, np.float64).reshape(6, 6)
+        if not np.all(np.isfinite(cov)):
+            self.get_logger().error('~/set_pose ignored: non-finite covariance')
+            return
+        T_base_cam = self._base_from_camera(cfg.camera_frame)
+        T_world_cam, cov_world = conv.camera_pose_from_base_pose(T_odom_base, cov, T_base_cam)
+        with self._pipeline_lock:
+            self._pipeline.set_pose(T_world_cam, cov_world)
+        self.get_logger().info(f'pose set to {T_odom_base[:3, 3].tolist()} m in '
+                               f'{cfg.odom_frame}')
+
+    # -- diagnostics -------------------------------------------------------------------
+    def diagnostics(self) -> DiagnosticStatus:
+        """Return the current diagnostic status of the odometry (also published at 1 Hz)."""
+        now = time.monotonic()
+        res = self._last_result
+        level, message = DiagnosticStatus.OK, 'tracking'
+        if self._last_pair_wall is None:
+            level, message = DiagnosticStatus.WARN, 'no synchronized stereo pair received yet'
+        elif now - self._last_pair_wall > STALE_INPUT_S:
+            level, message = DiagnosticStatus.STALE, 'no stereo pair for ' \
+                f'{now - self._last_pair_wall:.1f} s'
+        if self._waiting_for:
+            level, message = DiagnosticStatus.WARN, f'waiting for {self._waiting_for}'
+        if res is not None and self._last_pair_wall is not None and \
+                now - self._last_pair_wall <= STALE_INPUT_S:
+            lvl = _LEVEL[res.status]
+            if lvl != DiagnosticStatus.OK:
+                level, message = lvl, f'tracking {res.status.value}: {res.message}'
+            elif res.status is TrackingStatus.INITIALIZING:
+                message = 'initializing'
+        if now - self._last_error_wall < ERROR_HOLD_S:
+            level, message = DiagnosticStatus.ERROR, self._last_error.splitlines()[0]
+        rate = 0.0
+        if len(self._arrivals) >= 2 and self._arrivals[-1] > self._arrivals[0]:
+            rate = (len(self._arrivals) - 1) / (self._arrivals[-1] - self._arrivals[0])
+        sync_stats = self._sync.stats if self._sync is not None else None
+        values = {
+            'tracking_state': res.status.value if res is not None else 'none',
+            'features': res.n_tracked if res is not None else 0,
+            'inliers': res.n_inliers if res is not None else 0,
+            'iterations': res.iterations if res is not None else 0,
+            'processing_ms': float(res.timings_ms.get('total', np.nan)) if res is not None
+            else float('nan'),
+            'latency_ms': self._last_latency_ms,
+            'input_rate_hz': rate,
+            'pairs_received': self._counts['pairs'],
+            'pairs_processed': self._counts['processed'],
+            'dropped_pairs': self._counts['dropped'],
+            'unsynchronized_inputs': sync_stats.unsynchronized if sync_stats else 'n/a',
+            'pairs_without_camera_info': self._counts['without_camera_info'],
+            'frames_ignored': self._counts['ignored'],
+            'non_finite_skipped': self._counts['non_finite'],
+            'errors': self._counts['errors'],
+            'last_error': self._last_error.splitlines()[0] if self._last_error else '',
+        }
+        return conv.diagnostic_status(level, f'{self.get_name()}: stereo odometry', message,
+                                      values, hardware_id=self._config.ros.camera_frame or
+                                      'stereo_camera')
+
+    def _publish_diagnostics(self) -> None:
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [self.diagnostics()]
+        self._diag_pub.publish(msg)
+
+
+def main(args: list[str] | None = None) -> int:
+    """
+    Run the node (``ros2 run stereo_vo_ros stereo_vo_node``) until shut down.
+
+    Returns
+    -------
+    int
+        0 on a normal shutdown, 1 if the configuration is invalid.
+
+    """
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = StereoVONode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ConfigError as exc:
+        get_logger('stereo_vo').fatal(f'invalid configuration: {exc}')
+        code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
