@@ -1,8 +1,8 @@
 """
 Launch the stereo visual odometry node.
 
-Usage: ``ros2 launch stereo_vo_ros stereo_vo.launch.py`` with the defaults, or with a namespace, topic
-remappings, a parameter file and bag time::
+Usage: ``ros2 launch stereo_vo_ros stereo_vo.launch.py`` with the defaults, or with a
+namespace, topic remappings, a parameter file and bag time::
 
     ros2 launch stereo_vo_ros stereo_vo.launch.py namespace:=front
         left_image:=/cam/left/image_rect right_image:=/cam/right/image_rect

@@ -58,7 +58,7 @@ T_BASE_CAM = conv.transform_from_xyz_rpy([0, 0, 0], [-90, 0, -90])  # the node's
 # -- fixtures -----------------------------------------------------------------------------
 @pytest.fixture(scope='module')
 def sequence():
-    """Return the rendered demo city sequence (620x188, 10 Hz), once for the module."""
+    """Render the demo city preset (620x188 px, 10 Hz) once for the module."""
     spec = SequenceSpec.preset('demo', n_frames=N_FRAMES, start_time_s=100.0)
     frames = list(render_sequence(spec))
     return spec, frames
