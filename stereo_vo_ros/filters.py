@@ -222,7 +222,7 @@ class _BaseFilter:
             else:
                 z_bar, H = _linearize_point(xa, _sub(h, active, B))
             x_new, lam_a = _information_step(mean[active], info_prior[active], xa, z_bar, H,
-                                             z[active], r_inv)
+                                             z[active], r_inv[active])
             if lam is info_prior:
                 lam = info_prior.copy()
             lam[active] = lam_a

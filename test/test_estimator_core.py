@@ -11,7 +11,8 @@ from stereo_vo_ros.errors import CalibrationError
 from stereo_vo_ros.estimator import MotionEstimator
 from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, TransferModel, \
     transform_from_velocity, velocity_from_transform
-from stereo_vo_ros.ransac import num_samples
+from stereo_vo_ros.filters import make_filter
+from stereo_vo_ros.ransac import BatchedMeasurement, num_samples
 from stereo_vo_ros.records import Correspondences, TrackingStatus
 from stereo_vo_ros.trifocal import fundamental_from_projections, perpendicular_lines, \
     tensor_basis, transfer_basis, transfer_points, trifocal_tensor
@@ -141,7 +142,10 @@ def test_single_step_filters_converge_over_frames(filter_type):
     np.testing.assert_allclose(res.velocity, y, atol=1e-3)
 
 
-def test_ransac_recovers_motion_with_half_outliers():
+@pytest.mark.parametrize('filter_type', ['ispkf', 'iekf'])
+def test_ransac_recovers_motion_with_half_outliers(filter_type):
+    # The filter makes the hypotheses too; the IEKF's hypotheses converge after different
+    # numbers of iterations, so the batched update goes on with a subset of them.
     rng = np.random.default_rng(5)
     calib = kitti_calibration()
     y = np.array([-0.2, 0.1, 9.0, -0.01, 0.08, 0.02])
@@ -153,7 +157,10 @@ def test_ransac_recovers_motion_with_half_outliers():
     noise = 0.3
     corr = Correspondences(pl, pr, cl + rng.normal(0, noise, cl.shape),
                            cr + rng.normal(0, noise, cr.shape))
-    cfg = Config().replace(**{'bucketing.enabled': False, 'ransac.outlier_ratio': 0.5})
+    cfg = _config(filter_type, **{'bucketing.enabled': False, 'ransac.enabled': True,
+                                  'ransac.outlier_ratio': 0.5,
+                                  'filter.threshold_velocity': 1e-3,
+                                  'filter.threshold_angular_deg': 1e-3})
     res = MotionEstimator(cfg).estimate(corr, calib, 0.1)
     assert res.status is TrackingStatus.OK
     assert res.hypotheses == num_samples(0.99, 0.5, 3, cfg.ransac.max_hypotheses)
@@ -164,6 +171,32 @@ def test_ransac_recovers_motion_with_half_outliers():
     # Without RANSAC the same data gives a visibly wrong motion.
     bad = MotionEstimator(cfg.replace(**{'ransac.enabled': False})).estimate(corr, calib, 0.1)
     assert np.abs(bad.velocity - y).max() > 2 * np.abs(res.velocity - y).max()
+
+
+@pytest.mark.parametrize('filter_type', ['ispkf', 'iekf'])
+def test_batched_update_with_per_problem_noise_and_early_convergence(filter_type):
+    # RANSAC's batched update: every problem has its own points and noise variances, and the
+    # problems that converge early leave the others iterating on a subset of the batch.
+    rng = np.random.default_rng(8)
+    calib = kitti_calibration()
+    y = np.array([0.3, -0.1, 10.0, 0.02, -0.05, 0.01])
+    pl, pr, cl, cr = observe(calib, random_scene(rng, 12), transform_from_velocity(y, 0.1))
+    model = TransferModel(calib, pl, pr, 0.1)
+    samples = np.arange(12).reshape(4, 3)
+    z = np.hstack([cl, cr])[samples].reshape(4, -1)
+    var = rng.uniform(0.5, 2.0, z.shape)
+    # Problems 0 and 2 start at the truth and barely trust their points (converged at once);
+    # 1 and 3 start away from it.
+    var[[0, 2]] = 1e8
+    off = np.array([0.5, 0.2, -1.0, 0.01, 0.01, -0.01])
+    prior = np.array([y, y + off, y, y + 2 * off])
+    cov = np.diag([100.0] * 3 + [1.0] * 3)  # vague: the noiseless points decide
+    cfg = Config().replace(**{'filter.type': filter_type}).filter
+    out = make_filter(cfg).update(prior, cov, BatchedMeasurement(model, model.X[samples]),
+                                  z, var, max_iterations=50)
+    assert len(set(out.iterations.tolist())) > 1, out.iterations
+    assert np.all(out.converged)
+    np.testing.assert_allclose(out.mean, np.broadcast_to(y, (4, 6)), atol=0.05)
 
 
 def test_num_samples_eq14():
