@@ -40,8 +40,9 @@ Usage::
     python benchmarks/bench_accuracy.py [--data /work/shared/data] [--frames N] [--repeat 3]
         [--seed 0] [--quick] [--json results.json]
 
-``--frames`` shortens every rendered sequence (default: the preset's count, 300 or 200);
-``--quick`` renders 150 frames and times one repeat.
+``--frames`` shortens every rendered sequence (default: the preset's count, 300 or 200); the
+renderer lays the scene out from the duration, so a shorter sequence is another scene, not a
+prefix. ``--quick`` renders 150 frames, times one repeat and sweeps one extra seed.
 """
 
 from __future__ import annotations
@@ -636,7 +637,7 @@ def main() -> int:
     parser.add_argument('--data', type=Path, default=Path('/work/shared/data'),
                         help='folder holding the KITTI-layout clips (default: %(default)s)')
     parser.add_argument('--frames', type=int, default=None,
-                        help='frames per rendered sequence (default: the preset count)')
+                        help='frames per rendered sequence (default: the preset count; changes the scene)')
     parser.add_argument('--repeat', type=int, default=3, help='timing runs per clip')
     parser.add_argument('--seed', type=int, default=0, help='seed of the rendered scenes')
     parser.add_argument('--quick', action='store_true',
