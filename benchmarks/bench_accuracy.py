@@ -637,7 +637,8 @@ def main() -> int:
     parser.add_argument('--data', type=Path, default=Path('/work/shared/data'),
                         help='folder holding the KITTI-layout clips (default: %(default)s)')
     parser.add_argument('--frames', type=int, default=None,
-                        help='frames per rendered sequence (default: the preset count; changes the scene)')
+                        help='frames per rendered sequence (default: the preset count; '
+                        'another count renders another scene)')
     parser.add_argument('--repeat', type=int, default=3, help='timing runs per clip')
     parser.add_argument('--seed', type=int, default=0, help='seed of the rendered scenes')
     parser.add_argument('--quick', action='store_true',
