@@ -113,6 +113,10 @@ class FilterConfig:
     propagate_previous_noise: bool = _f(
         True, 'Add the pixel noise of the previous pair, propagated through the transfer, to '
         'each measurement variance (R stays diagonal) and widen the RANSAC gate accordingly.')
+    epipolar_correction: bool = _f(
+        True, 'Move each stereo match (previous and current pair) to the nearest pair on '
+        'corresponding epipolar lines (Hartley-Sturm, cv2.correctMatches) before the update: '
+        'the transfer assumes it, and a vertical stereo offset otherwise biases the rotation.')
     velocity_process_noise: float = _f(
         2.0, 'Process noise std of linear velocity per frame (m/s).', 1e-6, 1e3, dynamic=True)
     angular_process_noise_deg: float = _f(

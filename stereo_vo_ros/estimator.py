@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 
+import cv2
 import numpy as np
 
 from . import bucketing
@@ -28,6 +29,47 @@ from .ransac import BatchedMeasurement, ransac, reprojection_errors
 from .records import Correspondences, MotionEstimate, TrackingStatus
 
 LOG = logging.getLogger(__name__)
+
+
+def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
+                       calib_cur: StereoCalibration) -> Correspondences:
+    """
+    Return the correspondences with both stereo pairs moved onto their epipolar geometry.
+
+    The point-line-point transfer treats the previous pair as exact and predicts a current
+    pair that satisfies the epipolar constraint, while measured matches miss it by tracking
+    noise and rectification residuals (a mean vertical stereo offset of about -0.1 px on the
+    KITTI and EuRoC clips). Left uncorrected, that offset is explained by a rotation: a
+    camera at rest drifts. Each pair is moved to the nearest pair (sum of squared pixel
+    displacements) that satisfies ``x_right^T F x_left = 0`` (Hartley-Sturm optimal
+    correction, ``cv2.correctMatches``); for rectified images both rows become their mean.
+
+    Parameters
+    ----------
+    corr : Correspondences
+        Ideal pixel coordinates (N, 2) of the four views; not modified.
+    calib_prev, calib_cur : StereoCalibration
+        Calibration of the previous and of the current pair.
+
+    Returns
+    -------
+    Correspondences
+        New arrays; ids and ages shared.
+
+    """
+    def correct(F: np.ndarray, left: np.ndarray, right: np.ndarray):
+        if len(left) == 0:
+            return left.copy(), right.copy()
+        a, b = cv2.correctMatches(F, np.ascontiguousarray(left[None], np.float64),
+                                  np.ascontiguousarray(right[None], np.float64))
+        a, b = a[0], b[0]
+        bad = ~(np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1))
+        a[bad], b[bad] = left[bad], right[bad]
+        return a, b
+
+    prev_left, prev_right = correct(calib_prev.fundamental(), corr.prev_left, corr.prev_right)
+    cur_left, cur_right = correct(calib_cur.fundamental(), corr.cur_left, corr.cur_right)
+    return Correspondences(prev_left, prev_right, cur_left, cur_right, corr.ids, corr.ages)
 
 
 class MotionEstimator:
@@ -128,6 +170,8 @@ class MotionEstimator:
                               f'{candidates.size} usable correspondences (need '
                               f'{cfg.pipeline.min_features})' if dt > 0 else f'dt = {dt!r} s')
         sub = corr.subset(candidates)
+        if cfg.filter.epipolar_correction:
+            sub = epipolar_corrected(sub, calib, calib_cur or calib)
         model = TransferModel(calib, sub.prev_left, sub.prev_right, dt, calib_cur)
         z = np.hstack([sub.cur_left, sub.cur_right])  # (n, 4)
         sigma2 = cfg.filter.pixel_noise_px ** 2

@@ -8,10 +8,10 @@ from scipy.spatial.transform import Rotation
 from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.errors import CalibrationError
-from stereo_vo_ros.estimator import MotionEstimator
+from stereo_vo_ros.estimator import epipolar_corrected, MotionEstimator
+from stereo_vo_ros.filters import make_filter
 from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, TransferModel, \
     transform_from_velocity, velocity_from_transform
-from stereo_vo_ros.filters import make_filter
 from stereo_vo_ros.ransac import BatchedMeasurement, num_samples
 from stereo_vo_ros.records import Correspondences, TrackingStatus
 from stereo_vo_ros.trifocal import fundamental_from_projections, perpendicular_lines, \
@@ -197,6 +197,44 @@ def test_batched_update_with_per_problem_noise_and_early_convergence(filter_type
     assert len(set(out.iterations.tolist())) > 1, out.iterations
     assert np.all(out.converged)
     np.testing.assert_allclose(out.mean, np.broadcast_to(y, (4, 6)), atol=0.05)
+
+
+@pytest.mark.parametrize('correction', [True, False])
+def test_camera_at_rest_with_a_vertical_stereo_offset(correction):
+    # Identical pairs whose right points sit 0.1 px (+/- 0.4 px) off their epipolar lines, as
+    # KLT matches on real rigs do: the transfer predicts the right point on the line, and the
+    # offset must not be read as a rotation (the epipolar correction moves both pairs onto it).
+    rng = np.random.default_rng(9)
+    calib = kitti_calibration()
+    pl, pr, _, _ = observe(calib, random_scene(rng, 150), np.eye(4))
+    pr = pr + np.column_stack([np.zeros(150), -0.1 + rng.normal(0, 0.4, 150)])
+    corr = Correspondences(pl, pr, pl.copy(), pr.copy())
+    cfg = Config().replace(**{'filter.epipolar_correction': correction})
+    est = MotionEstimator(cfg)
+    for _ in range(10):
+        res = est.estimate(corr, calib, 0.1)
+    assert res.status is TrackingStatus.OK
+    rot_deg_per_frame = np.rad2deg(np.linalg.norm(res.velocity[3:]) * 0.1)
+    if correction:
+        assert rot_deg_per_frame < 1e-6 and np.linalg.norm(res.velocity[:3]) < 1e-5
+    else:  # the bias the correction removes
+        assert rot_deg_per_frame > 1e-3
+
+
+def test_epipolar_correction_moves_matches_onto_their_epipolar_lines():
+    rng = np.random.default_rng(10)
+    calib = kitti_calibration()
+    pl, pr, cl, cr = observe(calib, random_scene(rng, 50), random_pose(rng))
+    noisy = [a + rng.normal(0, 0.5, a.shape) for a in (pl, pr, cl, cr)]
+    before = [a.copy() for a in noisy]
+    out = epipolar_corrected(Correspondences(*noisy), calib, calib)
+    for left, right in ((out.prev_left, out.prev_right), (out.cur_left, out.cur_right)):
+        assert calib.epipolar_distance(left, right).max() < 1e-6
+    # Rectified: rows become the mean of both, columns stay; the inputs are untouched.
+    np.testing.assert_allclose(out.prev_left[:, 1], 0.5 * (noisy[0][:, 1] + noisy[1][:, 1]))
+    np.testing.assert_allclose(out.prev_left[:, 0], noisy[0][:, 0])
+    for a, b in zip(noisy, before):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_num_samples_eq14():
