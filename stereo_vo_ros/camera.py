@@ -91,7 +91,8 @@ def _check_intrinsics(K: np.ndarray, what: str) -> None:
         raise CalibrationError(f'{what} has non-finite values: {K.ravel().tolist()}')
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise CalibrationError(
-            f'{what} focal length must be positive, got fx={K[0, 0]!r}, fy={K[1, 1]!r}')
+            f'{what} focal length must be positive, got fx={float(K[0, 0])!r}, '
+            f'fy={float(K[1, 1])!r}')
     if abs(K[2, 2] - 1.0) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
         raise CalibrationError(f'{what} last row must be (0, 0, 1), got {K[2].tolist()}')
 
@@ -185,12 +186,12 @@ class StereoCalibration:
         baseline = float(np.linalg.norm(t_rect))
         if not np.isfinite(baseline) or baseline < 1e-6:
             raise CalibrationError(
-                f'stereo baseline must be positive, got {baseline!r} m '
-                f'(right P[0,3] = {right.P[0, 3]!r})')
+                f'stereo baseline must be positive, got {float(baseline)!r} m '
+                f'(right P[0,3] = {float(right.P[0, 3])!r})')
         if t_rect[0] >= 0:
             raise CalibrationError(
                 f'right camera must be to the right of the left one (P_right[0,3] = -fx * '
-                f'baseline < 0), got a baseline of {-t_rect[0]!r} m')
+                f'baseline < 0), got a baseline of {float(-t_rect[0])!r} m')
         return cls(left=left, right=right, kind=kind, K_left=K_left, K_right=K_right,
                    R_right_left=R_rl, t_right_left=t_rl, baseline_m=baseline)
 

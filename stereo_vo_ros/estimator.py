@@ -123,9 +123,14 @@ class MotionEstimator:
         factor = self.config.pipeline.lost_covariance_inflation if inflation is None \
             else inflation
         self.mean = mean
-        self.cov = np.minimum(cov * factor, self.initial_covariance() * 100.0) \
-            if factor > 1 else cov
-        self.cov = 0.5 * (self.cov + self.cov.T)
+        if factor > 1:
+            cov = cov * factor
+            # Cap every standard deviation at 10x the initial one with a congruence D C D
+            # (D diagonal, <= 1): unlike an element-wise minimum it keeps C positive definite.
+            cap = np.diag(self.initial_covariance()) * 100.0
+            d = np.sqrt(np.minimum(1.0, cap / np.maximum(np.diag(cov), 1e-300)))
+            cov = cov * np.outer(d, d)
+        self.cov = 0.5 * (cov + cov.T)
 
     # -- update ------------------------------------------------------------------------
     def estimate(self, corr: Correspondences, calib: StereoCalibration, dt: float,

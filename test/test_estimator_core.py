@@ -237,6 +237,23 @@ def test_epipolar_correction_moves_matches_onto_their_epipolar_lines():
         np.testing.assert_array_equal(a, b)
 
 
+def test_coasting_keeps_the_velocity_covariance_positive_definite():
+    # A posterior with strong correlations, then many frames without measurements: the
+    # inflation is capped per standard deviation without breaking positive definiteness.
+    rng = np.random.default_rng(11)
+    calib = kitti_calibration()
+    y = np.array([0.2, 0.0, 10.0, 0.01, 0.03, 0.0])
+    est = MotionEstimator(Config())
+    est.estimate(Correspondences(*observe(calib, random_scene(rng, 100),
+                                          transform_from_velocity(y, 0.1))), calib, 0.1)
+    for _ in range(30):
+        est.coast()
+        assert np.linalg.eigvalsh(est.cov).min() > 0
+    cap = np.diag(est.initial_covariance()) * 100.0
+    assert np.all(np.diag(est.cov) <= cap * (1 + 1e-12))
+    np.testing.assert_allclose(est.mean, y, atol=0.05)  # coasting keeps the velocity
+
+
 def test_num_samples_eq14():
     assert num_samples(0.99, 0.5, 3) == 35
     assert num_samples(0.99, 0.2, 3) == 7
