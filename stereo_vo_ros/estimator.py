@@ -42,7 +42,7 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
     KITTI and EuRoC clips). Left uncorrected, that offset is explained by a rotation: a
     camera at rest drifts. Each pair is moved to the nearest pair (sum of squared pixel
     displacements) that satisfies ``x_right^T F x_left = 0`` (Hartley-Sturm optimal
-    correction, ``cv2.correctMatches``); for rectified images both rows become their mean.
+    correction, ``cv2.correctMatches``); for rectified images that is the mean of both rows.
 
     Parameters
     ----------
@@ -57,9 +57,14 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
         New arrays; ids and ages shared.
 
     """
-    def correct(F: np.ndarray, left: np.ndarray, right: np.ndarray):
+    def correct(calib: StereoCalibration, left: np.ndarray, right: np.ndarray):
         if len(left) == 0:
             return left.copy(), right.copy()
+        if calib.kind == 'rectified':  # horizontal epipolar lines: the closed form
+            a, b = left.copy(), right.copy()
+            a[:, 1] = b[:, 1] = 0.5 * (left[:, 1] + right[:, 1])
+            return a, b
+        F = calib.fundamental()
         a, b = cv2.correctMatches(F, np.ascontiguousarray(left[None], np.float64),
                                   np.ascontiguousarray(right[None], np.float64))
         a, b = a[0], b[0]
@@ -67,8 +72,8 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
         a[bad], b[bad] = left[bad], right[bad]
         return a, b
 
-    prev_left, prev_right = correct(calib_prev.fundamental(), corr.prev_left, corr.prev_right)
-    cur_left, cur_right = correct(calib_cur.fundamental(), corr.cur_left, corr.cur_right)
+    prev_left, prev_right = correct(calib_prev, corr.prev_left, corr.prev_right)
+    cur_left, cur_right = correct(calib_cur, corr.cur_left, corr.cur_right)
     return Correspondences(prev_left, prev_right, cur_left, cur_right, corr.ids, corr.ages)
 
 

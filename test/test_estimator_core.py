@@ -237,6 +237,31 @@ def test_epipolar_correction_moves_matches_onto_their_epipolar_lines():
         np.testing.assert_array_equal(a, b)
 
 
+def test_epipolar_correction_of_raw_matches_uses_the_calibrated_geometry():
+    # Unrectified cameras (cv2.correctMatches with the calibrated F): corrected pairs lie on
+    # their epipolar lines and move by no more than the noise.
+    rng = np.random.default_rng(12)
+    w, h = 752, 480
+    K1 = np.array([[458.0, 0, 367.0], [0, 457.0, 248.0], [0, 0, 1]])
+    K2 = np.array([[457.0, 0, 379.0], [0, 456.0, 255.0], [0, 0, 1]])
+    R_rl = Rotation.from_rotvec([0.003, -0.01, 0.002]).as_matrix()
+    t_rl = np.array([-0.11, 0.0004, -0.0008])
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(K1, np.zeros(5), K2, np.zeros(5), (w, h), R_rl,
+                                           t_rl.reshape(3, 1), alpha=0)
+    raw = StereoCalibration.from_camera_info(_camera_info(K1, [0] * 5, R1, P1, w, h),
+                                             _camera_info(K2, [0] * 5, R2, P2, w, h), 'raw')
+    X = np.column_stack([rng.uniform(-3, 3, 40), rng.uniform(-2, 2, 40),
+                         rng.uniform(2, 12, 40)])
+    left, right = project(raw.projection_left(), X), project(raw.projection_right(), X)
+    noisy_left = left + rng.normal(0, 0.5, left.shape)
+    noisy_right = right + rng.normal(0, 0.5, right.shape)
+    assert raw.epipolar_distance(noisy_left, noisy_right).mean() > 0.1
+    out = epipolar_corrected(Correspondences(noisy_left, noisy_right, noisy_left, noisy_right),
+                             raw, raw)
+    assert raw.epipolar_distance(out.cur_left, out.cur_right).max() < 1e-6
+    assert np.abs(out.cur_left - noisy_left).max() < 3.0
+
+
 def test_coasting_keeps_the_velocity_covariance_positive_definite():
     # A posterior with strong correlations, then many frames without measurements: the
     # inflation is capped per standard deviation without breaking positive definiteness.
