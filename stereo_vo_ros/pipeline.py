@@ -68,6 +68,16 @@ def validate_images(left: np.ndarray, right: np.ndarray, calib: StereoCalibratio
                          f'calibration {calib.size[0]}x{calib.size[1]}')
 
 
+def _uniform_images(frame: StereoFrame) -> str:
+    """Name the images of the pair that have no texture at all (one grey level), or ''."""
+    notes = []
+    for img, name in ((frame.left, 'left'), (frame.right, 'right')):
+        lo, hi = int(img.min()), int(img.max())
+        if lo == hi:
+            notes.append(f'{name} image is uniform (every pixel {lo})')
+    return ', '.join(notes)
+
+
 class StereoOdometry:
     """
     Stereo visual odometry: feed stereo pairs, get poses.
@@ -164,12 +174,21 @@ class StereoOdometry:
         track = self._track(frame, prior, timings)
         corr = track.correspondences if track is not None else None
         t0 = time.perf_counter()
+        failure = 'no correspondences'
         if corr is None or len(corr) == 0:
             est = None
             self.estimator.coast()
         else:
-            est = self.estimator.estimate(corr, prev_calib, dt,
-                                          calib_cur=calib if calib_changed else None)
+            try:
+                est = self.estimator.estimate(corr, prev_calib, dt,
+                                              calib_cur=calib if calib_changed else None)
+            except np.linalg.LinAlgError as exc:  # numerically degenerate solve
+                LOG.warning('motion estimate failed (LinAlgError: %s): velocity re-initialised',
+                            exc)
+                self.estimator.reset()
+                est = None
+                failure = f'motion estimate failed (LinAlgError: {exc}); velocity re-initialised'
+        self._check_velocity_state()
         timings['estimate'] = (time.perf_counter() - t0) * 1e3
         ok = est is not None and est.status is TrackingStatus.OK
         if ok:
@@ -179,7 +198,10 @@ class StereoOdometry:
         else:
             self._lost_time += dt
             status = est.status if est is not None else TrackingStatus.DEGENERATE
-            message = est.message if est is not None else 'no correspondences'
+            message = est.message if est is not None else failure
+            blank = _uniform_images(frame)
+            if blank:
+                message = f'{blank}; {message}'
             if calib_changed and est is None:
                 status, message = TrackingStatus.INITIALIZING, 'calibration changed'
             if self._lost_time > self.config.pipeline.max_lost_time_s:
@@ -194,6 +216,19 @@ class StereoOdometry:
                             message=message)
 
     # -- steps -------------------------------------------------------------------------
+    def _check_velocity_state(self) -> None:
+        """Re-initialise the velocity if its mean or covariance became unusable."""
+        mean, cov = self.estimator.mean, self.estimator.cov
+        if np.all(np.isfinite(mean)) and np.all(np.isfinite(cov)):
+            w = np.linalg.eigvalsh(0.5 * (cov + cov.T))
+            if w[0] >= -1e-9 * max(1.0, float(np.abs(w).max())):
+                return
+            why = f'smallest covariance eigenvalue {w[0]:.3g}'
+        else:
+            why = 'non-finite values'
+        LOG.warning('velocity state is not a valid Gaussian (%s): velocity re-initialised', why)
+        self.estimator.reset()
+
     def _prior(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float):
         """Constant-velocity prediction of the current pixels for the tracker (initial flow)."""
         velocity = self.estimator.mean.copy()

@@ -14,20 +14,18 @@ import py_compile
 import signal
 import subprocess
 import sys
-import threading
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
+from ros_harness import composed_node, domain_id, Harness
+from ros_harness import stamp_ns as _stamp_ns, values as _values
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import CameraInfo, Image
@@ -43,7 +41,7 @@ from stereo_vo_ros.ros.player import BagPlayer
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-DOMAIN_ID = 1 + (os.getpid() * 7 + 3) % 200
+DOMAIN_ID = domain_id()
 N_FRAMES = 40
 SPLIT = 22  # frame at which the reset test restarts the odometry
 JITTER_NS = 2_000_000  # right stamps of the jittered bag are 2 ms late
@@ -111,68 +109,6 @@ def jitter_bag(sequence, tmp_path_factory):
     return path
 
 
-class Harness:
-    """A context, a test node collecting odometry and diagnostics, and an executor thread."""
-
-    def __init__(self, odom_topic: str = '/odom') -> None:
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
-        self.node = Node('test_harness', context=self.context)
-        self.odom: list[Odometry] = []
-        self.diagnostics: list[DiagnosticArray] = []
-        self.node.create_subscription(Odometry, odom_topic, self.odom.append, 100)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self.diagnostics.append,
-                                      100)
-        self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self._thread.start()
-
-    def add(self, node: Node) -> Node:
-        """Spin another node in the same executor."""
-        self.executor.add_node(node)
-        return node
-
-    def wait_for(self, predicate, timeout_s: float) -> bool:
-        """Poll ``predicate`` until it is true or the timeout (s) passes."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if predicate():
-                return True
-            time.sleep(0.02)
-        return predicate()
-
-    def settle(self, count: int, timeout_s: float = 15.0, quiet_s: float = 1.0) -> None:
-        """Wait for ``count`` odometry messages, or for the stream to stop growing."""
-        deadline = time.monotonic() + timeout_s
-        last, since = len(self.odom), time.monotonic()
-        while time.monotonic() < deadline and len(self.odom) < count:
-            time.sleep(0.05)
-            if len(self.odom) != last:
-                last, since = len(self.odom), time.monotonic()
-            elif time.monotonic() - since > quiet_s + 2.0:
-                break
-
-    def call(self, srv_type, name: str, request, timeout_s: float = 10.0):
-        """Call a service and return the response (None on timeout)."""
-        client = self.node.create_client(srv_type, name)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout_s):
-                return None
-            future = client.call_async(request)
-            self.wait_for(future.done, timeout_s)
-            return future.result() if future.done() else None
-        finally:
-            self.node.destroy_client(client)
-
-    def close(self) -> None:
-        """Stop the executor and shut the context down."""
-        self.executor.shutdown(timeout_sec=5.0)
-        for node in list(self.executor.get_nodes()):
-            node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-
-
 @pytest.fixture
 def harness():
     """Yield a fresh Harness and close it afterwards."""
@@ -208,10 +144,6 @@ def node_process(*ros_args: str):
             proc.kill()
             out, _ = proc.communicate()
         result['output'], result['returncode'] = out, proc.returncode
-
-
-def _stamp_ns(msg) -> int:
-    return conv.nanoseconds_from_time(msg.header.stamp)
 
 
 def _camera_poses(odoms) -> np.ndarray:
@@ -276,10 +208,6 @@ def _assert_reproduces_offline(segments, spec, frames) -> None:
         np.testing.assert_allclose(got, want.T_odom_base, atol=1e-6)
         np.testing.assert_allclose(np.array(m.pose.covariance).reshape(6, 6),
                                    want.pose_covariance, rtol=1e-6, atol=1e-12)
-
-
-def _values(status: DiagnosticStatus) -> dict:
-    return {kv.key: kv.value for kv in status.values}
 
 
 def _paced_play(h: Harness, player: BagPlayer, timeout_s: float = 5.0, **kwargs):
@@ -385,16 +313,10 @@ def test_node_process_remapping_exact_sync_and_sensor_qos(sequence, bag):
 
 
 # -- composed in-process ------------------------------------------------------------------
-def _composed_node(h: Harness, **params) -> StereoVONode:
-    overrides = [Parameter('use_sim_time', value=True), Parameter('ros.qos', value='reliable')]
-    overrides += [Parameter(k, value=v) for k, v in params.items()]
-    return h.add(StereoVONode(context=h.context, parameter_overrides=overrides))
-
-
 def test_composed_node_approximate_sync_parameters_debug_image_and_set_pose(
         sequence, jitter_bag, harness):
     _, frames = sequence
-    node = _composed_node(harness, **{'ros.sync': 'approximate', 'ros.sync_slop_s': 0.005})
+    node = composed_node(harness, **{'ros.sync': 'approximate', 'ros.sync_slop_s': 0.005})
     debug = []
     harness.node.create_subscription(Image, '/stereo_vo/debug_image', debug.append, 10)
     player = BagPlayer(harness.node, jitter_bag, rate=1.0)
@@ -443,7 +365,7 @@ def test_composed_node_approximate_sync_parameters_debug_image_and_set_pose(
 
 def test_composed_node_exact_sync_refuses_jittered_stamps(sequence, jitter_bag, harness):
     _, frames = sequence
-    node = _composed_node(harness, **{'ros.sync': 'exact'})
+    node = composed_node(harness, **{'ros.sync': 'exact'})
     player = BagPlayer(harness.node, jitter_bag, rate=2.0)
     _wait_for_node(harness, player)
     player.play(stop_ns=int(round(frames[8].stamp_s * 1e9)))
@@ -459,7 +381,7 @@ def test_composed_node_exact_sync_refuses_jittered_stamps(sequence, jitter_bag, 
 
 def test_composed_node_survives_bad_input_and_waits_for_camera_info(sequence, harness):
     spec, frames = sequence
-    node = _composed_node(harness)
+    node = composed_node(harness)
     qos = 10
     pubs = {t: harness.node.create_publisher(Image if 'image' in t else CameraInfo, t, qos)
             for t in IMAGE_TOPICS + INFO_TOPICS}

@@ -99,6 +99,34 @@ def test_memory_is_bounded_when_one_side_is_silent():
     assert sync.queued('left') == 0 and sync.stats.unsynchronized == 0
 
 
+def test_stamps_jumping_back_restart_the_pairing():
+    """A looping bag: pairing starts afresh instead of dropping everything as late."""
+    sync = StereoSynchronizer('exact')
+    loop = [(side, k * 100 * MS) for k in range(1, 16) for side in ('left', 'right')]
+    first = _feed(sync, loop)
+    second = _feed(sync, loop[:10])
+    assert [p.stamp_ns for p in first] == [k * 100 * MS for k in range(1, 16)]
+    assert [p.stamp_ns for p in second] == [k * 100 * MS for k in range(1, 6)]
+    assert sync.stats.restarts == 1 and sync.stats.unsynchronized == 0
+    assert sync.newest('left') == sync.newest('right') == 500 * MS
+    # A jump back shorter than the threshold is an out-of-order stamp: dropped as late.
+    assert sync.add('left', 50 * MS, 'x') == [] and sync.stats.late['left'] == 1
+    assert sync.stats.restarts == 1
+
+
+def test_restart_drops_what_was_queued_and_counts_it():
+    sync = StereoSynchronizer('approximate', slop_s=0.001, restart_jump_s=0.5)
+    _feed(sync, [('left', 1000 * MS), ('left', 1100 * MS), ('right', 1100 * MS),
+                 ('left', 1200 * MS)])
+    assert sync.queued('left') == 1
+    # The right camera restarts first: the queued left message can never pair.
+    assert _feed(sync, [('right', 100 * MS)]) == []
+    assert sync.stats.restarts == 1 and sync.queued('left') == 0
+    assert sync.stats.unmatched['left'] == 2  # 1000 ms (earlier) and 1200 ms (restart)
+    (pair,) = _feed(sync, [('left', 100 * MS)])
+    assert pair.stamp_ns == pair.right_stamp_ns == 100 * MS
+
+
 def test_invalid_arguments():
     with pytest.raises(ValueError, match='nearest'):
         StereoSynchronizer('nearest')
@@ -106,6 +134,8 @@ def test_invalid_arguments():
         StereoSynchronizer('approximate', slop_s=-0.1)
     with pytest.raises(ValueError, match='middle'):
         StereoSynchronizer().add('middle', 0, None)
+    with pytest.raises(ValueError, match='restart jump'):
+        StereoSynchronizer(restart_jump_s=0.0)
 
 
 @settings(max_examples=200, deadline=None)
@@ -131,6 +161,31 @@ def test_invariants_on_random_streams(slop_ms, queue_size, steps):
         assert p.left == ('left', p.stamp_ns) and p.right == ('right', p.right_stamp_ns)
     for a, b in zip(pairs, pairs[1:]):
         assert b.stamp_ns > a.stamp_ns and b.right_stamp_ns > a.right_stamp_ns
+    s = sync.stats
+    assert s.restarts == 0
+    accounted = 2 * s.pairs + s.unsynchronized + sum(s.duplicates.values()) + \
+        sync.queued('left') + sync.queued('right')
+    assert accounted == total
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    slop_ms=st.integers(0, 8),
+    steps=st.lists(st.tuples(st.sampled_from(['left', 'right']),
+                             st.sampled_from([100, 100, 100, 0, 3, -3, -1500, -5000, 2000])),
+                   max_size=80),
+)
+def test_invariants_with_restarts(slop_ms, steps):
+    """With stamps jumping back (restarts) every message is still accounted for once."""
+    sync = StereoSynchronizer('approximate', slop_s=slop_ms * 1e-3, queue_size=4)
+    clock = {'left': 10_000 * MS, 'right': 10_000 * MS}
+    total = 0
+    for side, jump in steps:
+        clock[side] = max(0, clock[side] + jump * MS)
+        for p in sync.add(side, clock[side], (side, clock[side])):
+            assert abs(p.stamp_ns - p.right_stamp_ns) <= slop_ms * MS
+        total += 1
+        assert sync.queued(side) <= 4
     s = sync.stats
     accounted = 2 * s.pairs + s.unsynchronized + sum(s.duplicates.values()) + \
         sync.queued('left') + sync.queued('right')

@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import StereoCalibration
-from ..errors import ImageError
+from ..errors import CalibrationError, ImageError
 from ..records import Correspondences, OdometryResult, TrackingStatus
 
 #: encoding -> (numpy dtype of one channel, channels). Everything else raises ImageError.
@@ -79,7 +79,8 @@ def numpy_from_image(msg: Image) -> np.ndarray:
     Raises
     ------
     ImageError
-        Unsupported encoding, zero size, a step shorter than a row, or too little data.
+        Unsupported encoding, zero size, a step shorter than a row, or a data length other
+        than ``step * height``.
 
     """
     encoding = str(msg.encoding)
@@ -95,7 +96,7 @@ def numpy_from_image(msg: Image) -> np.ndarray:
         raise ImageError(f'image step {step} is shorter than a row of {width} {encoding} '
                          f'pixels ({row_bytes} bytes)')
     buf = np.frombuffer(msg.data, dtype=np.uint8)
-    if buf.size < step * height:
+    if buf.size != step * height:
         raise ImageError(f'image data has {buf.size} bytes, expected step*height = '
                          f'{step}*{height} = {step * height} ({encoding} {width}x{height})')
     rows = buf[:step * height].reshape(height, step)[:, :row_bytes]
@@ -182,10 +183,16 @@ def calibration_from_camera_info(left: CameraInfo, right: CameraInfo,
     Raises
     ------
     CalibrationError
-        See ``StereoCalibration.from_camera_info``.
+        See ``StereoCalibration.from_camera_info``; also for projection matrices that pass
+        its checks but are numerically singular.
 
     """
-    return StereoCalibration.from_camera_info(left, right, kind)
+    try:
+        return StereoCalibration.from_camera_info(left, right, kind)
+    except np.linalg.LinAlgError as exc:  # e.g. fx = fy = 1e-300 with a skew term
+        raise CalibrationError(f'calibration matrices are singular ({exc}): left P '
+                               f'{[float(v) for v in left.p]}, right P '
+                               f'{[float(v) for v in right.p]}') from None
 
 
 def camera_info_from_matrices(P: np.ndarray, width: int, height: int,
@@ -366,24 +373,30 @@ def base_odometry_from_result(result: OdometryResult, T_base_cam: np.ndarray
     BaseOdometry
         Pose of ``base`` in ``odom`` (``odom`` = ``base`` at the first frame), covariances
         made symmetric positive definite (at least ``MIN_VARIANCE`` on the diagonal, at least
-        ``LOST_VARIANCE`` while the status is LOST). Non-finite input stays non-finite (check
-        with ``is_finite``).
+        ``LOST_VARIANCE`` while the status is LOST). Non-finite input, values that overflow
+        and covariances too large to decompose give a non-finite result (check with
+        ``is_finite``).
 
     """
     A = np.asarray(T_base_cam, np.float64)
     A_inv = np.linalg.inv(A)
-    T_odom_base = A @ np.asarray(result.T_world_cam, np.float64) @ A_inv
-    Ad = adjoint(A)
-    J = _decouple(T_odom_base) @ Ad
-    pose_cov = J @ np.asarray(result.pose_covariance, np.float64) @ J.T
-    twist = Ad @ np.asarray(result.velocity, np.float64)
-    twist_cov = Ad @ np.asarray(result.velocity_covariance, np.float64) @ Ad.T
+    with np.errstate(all='ignore'):  # overflow shows as inf: see is_finite
+        T_odom_base = A @ np.asarray(result.T_world_cam, np.float64) @ A_inv
+        Ad = adjoint(A)
+        J = _decouple(T_odom_base) @ Ad
+        pose_cov = J @ np.asarray(result.pose_covariance, np.float64) @ J.T
+        twist = Ad @ np.asarray(result.velocity, np.float64)
+        twist_cov = Ad @ np.asarray(result.velocity_covariance, np.float64) @ Ad.T
     odom = BaseOdometry(T_odom_base, pose_cov, twist, twist_cov)
     if not odom.is_finite():
         return odom
     floor = LOST_VARIANCE if result.status is TrackingStatus.LOST else MIN_VARIANCE
-    odom.pose_covariance = spd(pose_cov, floor)
-    odom.twist_covariance = spd(twist_cov, floor)
+    try:
+        with np.errstate(all='ignore'):
+            odom.pose_covariance = spd(pose_cov, floor)
+            odom.twist_covariance = spd(twist_cov, floor)
+    except np.linalg.LinAlgError:  # eigh fails on values near the float64 limits
+        odom.pose_covariance = np.full((6, 6), np.nan)
     return odom
 
 

@@ -22,6 +22,13 @@ Processing never queues: the image callbacks only pair messages and keep the new
 one-slot mailbox; a worker thread owned by the node processes it and publishes the results, so
 any executor keeps receiving images while a pair is processed. A pair overwritten before it
 was processed is counted as dropped (newest wins). ``destroy_node`` stops the worker.
+
+Bad input never stops the node (see docs/robustness.md): every problem gets a log line
+(repeats of the same problem are throttled, a different problem is logged at once), holds the
+diagnostics at WARN or ERROR for a few seconds and is counted there; nothing non-finite is
+published; the next good pair produces odometry again. Warnings of the core library
+(``logging``) raised while this node's worker processes a pair are forwarded to the node's
+logger and diagnostics.
 """
 
 from __future__ import annotations
@@ -29,6 +36,8 @@ from __future__ import annotations
 import array
 import collections
 import dataclasses
+import logging
+import re
 import sys
 import threading
 import time
@@ -56,7 +65,7 @@ from . import conversions as conv
 from .sync import StereoPair, StereoSynchronizer
 from ..config import Config, from_flat
 from ..errors import CalibrationError, ConfigError, ImageError
-from ..pipeline import StereoOdometry
+from ..pipeline import RESTART_JUMP_S, StereoOdometry
 from ..records import OdometryResult, StereoFrame, TrackingStatus
 
 try:  # optional: not part of the PyPI wheels used in CI
@@ -76,10 +85,18 @@ except ImportError:  # pragma: no cover - depends on the install
 SYNC_QUEUE_SIZE = 10
 #: Seconds (wall) during which the last error keeps the diagnostics at ERROR.
 ERROR_HOLD_S = 5.0
+#: Seconds (wall) during which the last warning keeps the diagnostics at least at WARN.
+WARN_HOLD_S = 5.0
 #: Seconds (wall) without a pair after which the diagnostics report stale input.
 STALE_INPUT_S = 3.0
-#: Seconds between repetitions of a throttled log line.
+#: Seconds between repetitions of a throttled log line (per problem, not per call site).
 LOG_THROTTLE_S = 5.0
+#: Share of the pixels at the darkest or the brightest grey level above which an image is
+#: reported as under- or over-exposed (a warning; it is still processed).
+EXPOSURE_WARN_FRACTION = 0.5
+#: Problems remembered for throttling; older ones are forgotten beyond this many.
+LOG_THROTTLE_KEYS = 256
+_NUMBER = re.compile(r'[-+]?\d+(\.\d+)?(e[-+]?\d+)?')
 
 _LEVEL = {TrackingStatus.OK: DiagnosticStatus.OK,
           TrackingStatus.INITIALIZING: DiagnosticStatus.OK,
@@ -127,6 +144,27 @@ def _plain(value: Any) -> Any:
     return value
 
 
+class _LibraryLogBridge(logging.Handler):
+    """Forward warnings the core library logs in one thread to a node (log line + status)."""
+
+    def __init__(self, node: 'StereoVONode', thread: threading.Thread) -> None:
+        super().__init__(logging.WARNING)
+        self._node = node
+        self._thread = thread
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread != self._thread.ident:
+            return
+        try:
+            text = record.getMessage()
+        except Exception:  # a malformed record must not break the caller
+            return
+        if record.levelno >= logging.ERROR:
+            self._node._error(text)
+        else:
+            self._node._warn(text)
+
+
 class StereoVONode(Node):
     """
     Stereo visual odometry node (see the module docstring for topics, services, parameters).
@@ -167,6 +205,11 @@ class StereoVONode(Node):
         self._last_pair_wall: float | None = None
         self._last_error = ''
         self._last_error_wall = -np.inf
+        self._last_warning = ''
+        self._last_warning_wall = -np.inf
+        self._log_state: dict[str, list] = {}
+        self._log_lock = threading.Lock()
+        self._last_stamp_ns: int | None = None  # of the last pair the pipeline accepted
         self._waiting_for = ''
         self._last_result: OdometryResult | None = None
         self._last_latency_ms = float('nan')
@@ -197,7 +240,8 @@ class StereoVONode(Node):
                     subs, SYNC_QUEUE_SIZE, cfg.sync_slop_s)
             self._mf_sync.registerCallback(self._on_synced_messages)
         else:
-            self._sync = StereoSynchronizer(cfg.sync, cfg.sync_slop_s, SYNC_QUEUE_SIZE)
+            self._sync = StereoSynchronizer(cfg.sync, cfg.sync_slop_s, SYNC_QUEUE_SIZE,
+                                            restart_jump_s=RESTART_JUMP_S)
             self._sync_lock = threading.Lock()
             self.create_subscription(Image, 'left/image_rect',
                                      lambda m: self._on_image('left', m), qos)
@@ -210,6 +254,8 @@ class StereoVONode(Node):
         self.create_timer(1.0, self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._worker = threading.Thread(target=self._work, name='stereo_vo_worker', daemon=True)
+        self._log_bridge = _LibraryLogBridge(self, self._worker)
+        logging.getLogger('stereo_vo_ros').addHandler(self._log_bridge)
         self._worker.start()
         self.get_logger().info(
             f'stereo VO ready: {self.resolve_topic_name("left/image_rect")} + '
@@ -333,7 +379,29 @@ class StereoVONode(Node):
     def _on_image(self, side: str, msg: Image) -> None:
         stamp_ns = conv.nanoseconds_from_time(msg.header.stamp)
         with self._sync_lock:
+            stats = self._sync.stats
+            before = (stats.restarts, stats.late[side], sum(stats.unmatched.values()))
+            previous = self._sync.newest(side)
             pairs = self._sync.add(side, stamp_ns, msg)
+            stats = self._sync.stats
+            after = (stats.restarts, stats.late[side], sum(stats.unmatched.values()))
+            newest = {s: self._sync.newest(s) for s in ('left', 'right')}
+        if after[0] > before[0]:
+            self._warn(f'{side} image stamp {stamp_ns * 1e-9:.9f} s is '
+                       f'{(previous - stamp_ns) * 1e-9:.3f} s before the previous one: the '
+                       'input restarted (looping bag?); stereo pairing starts afresh',
+                       key='sync-restart')
+        elif after[1] > before[1]:
+            self._warn(f'{side} image dropped: stamp {stamp_ns * 1e-9:.9f} s is not after the '
+                       'last stereo pair (duplicate or out-of-order stamp)', key='sync-late')
+        if after[2] > before[2]:
+            cfg = self._config.ros
+            rule = 'equal (exact sync)' if cfg.sync == 'exact' else \
+                f'within {cfg.sync_slop_s} s (approximate sync)'
+            stamps = ', '.join(f'{s} {v * 1e-9:.9f} s' for s, v in newest.items()
+                               if v is not None)
+            self._warn(f'{after[2] - before[2]} image(s) dropped without a partner: left and '
+                       f'right stamps are not {rule}; newest {stamps}', key='sync-unmatched')
         for pair in pairs:
             self._on_pair(pair)
 
@@ -347,18 +415,69 @@ class StereoVONode(Node):
         self._last_pair_wall = now
         self._counts['pairs'] += 1
         with self._slot_lock:
-            if self._slot is not None:
+            dropped = self._slot is not None
+            if dropped:
                 self._counts['dropped'] += 1
             self._slot = (pair, time.perf_counter())
             self._slot_lock.notify()
+        if dropped:
+            res = self._last_result
+            busy = f'{res.timings_ms.get("total", float("nan")):.1f} ms' if res else 'unknown'
+            self._log('warning', f'stereo pair dropped: pairs arrive faster than they are '
+                      f'processed (last processing time {busy}); the newest pair is processed',
+                      key='dropped')
 
-    # -- processing --------------------------------------------------------------------
-    def _error(self, text: str) -> None:
+    # -- logging -----------------------------------------------------------------------
+    def _should_log(self, text: str, key: str | None) -> str | None:
+        """
+        Throttle per problem: return the text to log (with a repeat count), or None.
+
+        The problem is ``key``, by default the first line of ``text`` with its numbers
+        blanked, so that a new problem is logged at once and a repeated one every
+        ``LOG_THROTTLE_S`` seconds.
+        """
+        key = key if key is not None else _NUMBER.sub('#', text.split('\n', 1)[0])
+        now = time.monotonic()
+        with self._log_lock:
+            state = self._log_state.get(key)
+            if state is not None and now - state[0] < LOG_THROTTLE_S:
+                state[1] += 1
+                return None
+            if len(self._log_state) >= LOG_THROTTLE_KEYS:
+                self._log_state = {k: v for k, v in self._log_state.items()
+                                   if now - v[0] < LOG_THROTTLE_S}
+            self._log_state[key] = [now, 0]
+        if state is not None and state[1]:
+            text += f' [{state[1]} more like this in the last {now - state[0]:.0f} s]'
+        return text
+
+    def _log(self, severity: str, text: str, key: str | None = None) -> None:
+        line = self._should_log(text, key)
+        if line is None:
+            return
+        # One call site per severity: rclpy refuses a severity change at a call site.
+        if severity == 'error':
+            self.get_logger().error(line)
+        elif severity == 'warning':
+            self.get_logger().warning(line)
+        else:
+            self.get_logger().info(line)
+
+    def _warn(self, text: str, key: str | None = None) -> None:
+        """Log a warning (throttled per problem) and hold the diagnostics at WARN."""
+        self._last_warning = text
+        self._last_warning_wall = time.monotonic()
+        self._counts['warnings'] += 1
+        self._log('warning', text, key)
+
+    def _error(self, text: str, key: str | None = None) -> None:
+        """Log an error (throttled per problem) and hold the diagnostics at ERROR."""
         self._last_error = text
         self._last_error_wall = time.monotonic()
         self._counts['errors'] += 1
-        self.get_logger().error(text, throttle_duration_sec=LOG_THROTTLE_S)
+        self._log('error', text, key)
 
+    # -- processing --------------------------------------------------------------------
     def _calibration(self, left: CameraInfo, right: CameraInfo):
         key = (conv.camera_info_key(left), conv.camera_info_key(right),
                self._config.pipeline.input_kind)
@@ -366,10 +485,31 @@ class StereoVONode(Node):
             self._calib = conv.calibration_from_camera_info(left, right,
                                                             self._config.pipeline.input_kind)
             self._calib_key = key
-            self.get_logger().info(f'stereo calibration: {self._calib.size[0]}x'
-                                   f'{self._calib.size[1]} px, baseline '
-                                   f'{self._calib.baseline_m:.4f} m')
+            self._counts['calibrations'] += 1
+            self.get_logger().info(f'stereo calibration: {self._calib_summary()}')
         return self._calib
+
+    def _calib_summary(self) -> str:
+        if self._calib is None:
+            return 'none'
+        return (f'{self._calib.size[0]}x{self._calib.size[1]} px, fx '
+                f'{self._calib.K_left[0, 0]:.6g} px, baseline {self._calib.baseline_m:.6g} m')
+
+    def _grey(self, side: str, msg: Image) -> np.ndarray:
+        """Convert one image, naming the side and topic in the error; warn if badly exposed."""
+        try:
+            grey = conv.grey_from_image(msg)
+        except ImageError as exc:
+            topic = self.resolve_topic_name(f'{side}/image_rect')
+            raise ImageError(f'{side} image ({topic}): {exc}') from None
+        top = np.iinfo(grey.dtype).max
+        for value, what in ((top, f'over-exposed: {{:.0%}} of the pixels saturated at {top}'),
+                            (0, 'under-exposed: {:.0%} of the pixels at 0')):
+            share = np.count_nonzero(grey == value) / grey.size
+            if share > EXPOSURE_WARN_FRACTION:
+                self._warn(f'{side} image {what.format(share)}', key=f'exposure {side} {value}')
+                break
+        return grey
 
     def _work(self) -> None:
         """Worker thread: process the newest pair whenever there is one, until destroyed."""
@@ -380,7 +520,18 @@ class StereoVONode(Node):
                 if self._stopping:
                     return
                 item, self._slot = self._slot, None
-            self._process(*item)
+            try:
+                self._process(*item)
+            except Exception as exc:  # never let a bug stop the worker: log it, report it
+                # The odometry state may be what fails: restart it rather than fail forever.
+                with self._pipeline_lock:
+                    self._pipeline.reset()
+                    self._path.clear()
+                    self._last_stamp_ns = None
+                self._counts['resets'] += 1
+                self._error(f'{type(exc).__name__} while processing a pair: {exc}; the '
+                            'odometry restarts at the identity with the next pair\n'
+                            f'{traceback.format_exc()}')
 
     def destroy_node(self) -> None:
         """Stop the worker thread, then destroy the node."""
@@ -389,6 +540,7 @@ class StereoVONode(Node):
             self._slot_lock.notify()
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout=10.0)
+        logging.getLogger('stereo_vo_ros').removeHandler(self._log_bridge)
         super().destroy_node()
 
     def _process(self, pair: StereoPair, t_arrival: float) -> None:
@@ -399,29 +551,35 @@ class StereoVONode(Node):
             self._waiting_for = 'camera_info on ' + ', '.join(missing)
             self._counts['without_camera_info'] += 1
             with self._slot_lock:
+                if self._waiting_pair is not None:
+                    self._counts['dropped'] += 1  # only the newest pair waits
                 self._waiting_pair = (pair, t_arrival)
             self._release_waiting_pair()  # in case it arrived meanwhile
-            self.get_logger().warning(f'waiting for {self._waiting_for}',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
+            self._log('warning', f'waiting for {self._waiting_for}')
             return
         self._waiting_for = ''
         try:
-            calib = self._calibration(left_info, right_info)
-            frame = StereoFrame(conv.grey_from_image(pair.left), conv.grey_from_image(pair.right),
+            try:
+                calib = self._calibration(left_info, right_info)
+            except CalibrationError as exc:
+                raise CalibrationError(f'invalid camera_info: {exc}') from None
+            frame = StereoFrame(self._grey('left', pair.left), self._grey('right', pair.right),
                                 pair.stamp_ns * 1e-9, calib)
             with self._pipeline_lock:
+                restart = self._last_stamp_ns is not None and \
+                    pair.stamp_ns < self._last_stamp_ns - int(RESTART_JUMP_S * 1e9)
                 result = self._pipeline.process(frame)
+                if result.accepted:
+                    self._last_stamp_ns = pair.stamp_ns
+                    if restart:  # the pipeline restarted at the identity: so does the path
+                        self._path.clear()
+                        self._counts['restarts'] += 1
         except (ImageError, CalibrationError) as exc:
             self._error(f'{type(exc).__name__}: {exc}')
             return
-        except Exception as exc:  # never let a bug kill the node: log it, report it
-            self._error(f'{type(exc).__name__} while processing: {exc}\n'
-                        f'{traceback.format_exc()}')
-            return
         if not result.accepted:
             self._counts['ignored'] += 1
-            self.get_logger().warning(f'frame ignored: {result.message}',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
+            self._warn(f'frame ignored: {result.message}')
             return
         self._publish(pair, result)
         self._last_latency_ms = (time.perf_counter() - t_arrival) * 1e3
@@ -434,14 +592,18 @@ class StereoVONode(Node):
         self._counts['processed'] += 1
         if not odom.is_finite():
             self._counts['non_finite'] += 1
-            self.get_logger().error(
-                f'non-finite odometry at {pair.stamp_ns * 1e-9:.9f} s ({result.status.value}): '
-                'not published', throttle_duration_sec=LOG_THROTTLE_S)
+            with self._pipeline_lock:
+                self._pipeline.reset()
+                self._path.clear()
+                self._last_stamp_ns = None
+            self._counts['resets'] += 1
+            self._error(f'non-finite odometry at {pair.stamp_ns * 1e-9:.9f} s '
+                        f'({result.status.value}): not published; the odometry restarts at the '
+                        'identity with the next pair')
             return
         if result.status is not TrackingStatus.OK and \
                 result.status is not TrackingStatus.INITIALIZING:
-            self.get_logger().warning(f'tracking {result.status.value}: {result.message}',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
+            self._log('warning', f'tracking {result.status.value}: {result.message}')
         stamp = pair.left.header.stamp
         self._odom_pub.publish(conv.odometry_msg(odom, stamp, cfg.odom_frame, cfg.base_frame))
         self._counts['published'] += 1
@@ -473,6 +635,7 @@ class StereoVONode(Node):
         with self._pipeline_lock:
             self._pipeline.reset()
             self._path.clear()
+            self._last_stamp_ns = None
             if self._sync is not None:
                 with self._sync_lock:
                     self._sync.reset()
@@ -501,7 +664,16 @@ class StereoVONode(Node):
             self.get_logger().error('~/set_pose ignored: non-finite covariance')
             return
         T_base_cam = self._base_from_camera(cfg.camera_frame)
-        T_world_cam, cov_world = conv.camera_pose_from_base_pose(T_odom_base, cov, T_base_cam)
+        try:
+            with np.errstate(all='ignore'):
+                T_world_cam, cov_world = conv.camera_pose_from_base_pose(T_odom_base, cov,
+                                                                         T_base_cam)
+        except ValueError:  # LinAlgError included
+            T_world_cam = cov_world = np.full((4, 4), np.nan)
+        if not (np.all(np.isfinite(T_world_cam)) and np.all(np.isfinite(cov_world))):
+            self.get_logger().error('~/set_pose ignored: the pose or its covariance overflows '
+                                    f'in the camera frame (position {T_odom_base[:3, 3]} m)')
+            return
         with self._pipeline_lock:
             self._pipeline.set_pose(T_world_cam, cov_world)
         self.get_logger().info(f'pose set to {T_odom_base[:3, 3].tolist()} m in '
@@ -527,6 +699,11 @@ class StereoVONode(Node):
                 level, message = lvl, f'tracking {res.status.value}: {res.message}'
             elif res.status is TrackingStatus.INITIALIZING:
                 message = 'initializing'
+        if now - self._last_warning_wall < WARN_HOLD_S:
+            if level == DiagnosticStatus.OK:
+                level, message = DiagnosticStatus.WARN, self._last_warning
+            elif self._last_warning not in message:
+                message = f'{message} (last warning: {self._last_warning})'
         if now - self._last_error_wall < ERROR_HOLD_S:
             level, message = DiagnosticStatus.ERROR, self._last_error.splitlines()[0]
         rate = 0.0
@@ -549,6 +726,13 @@ class StereoVONode(Node):
             'pairs_without_camera_info': self._counts['without_camera_info'],
             'frames_ignored': self._counts['ignored'],
             'non_finite_skipped': self._counts['non_finite'],
+            'restarts': self._counts['restarts'],
+            'resets': self._counts['resets'],
+            'calibration': self._calib_summary(),
+            'calibration_changes': max(self._counts['calibrations'] - 1, 0),
+            'path_length': len(self._path),
+            'warnings': self._counts['warnings'],
+            'last_warning': self._last_warning,
             'errors': self._counts['errors'],
             'last_error': self._last_error.splitlines()[0] if self._last_error else '',
         }

@@ -12,6 +12,9 @@ Policy (``exact`` is ``approximate`` with a slop of zero):
 * After a pair, every queued message not newer than the paired stamp of its side is dropped
   (it can no longer form a pair with increasing stamps) and counted as unmatched.
 * A message not newer than the last paired stamp of its side is dropped as late.
+* A stamp more than ``restart_jump_s`` before the newest stamp of its side means the input
+  restarted (e.g. a looping bag): the queued messages of both sides are dropped (counted as
+  unmatched), pairing starts afresh with this message and ``stats.restarts`` counts it.
 * A second message with a stamp already queued on the same side replaces it (duplicate).
 * A queued message older than the newest stamp of the other side minus the slop can no longer
   be paired (topics arrive in stamp order) and is dropped as unmatched; each side keeps at most
@@ -66,6 +69,8 @@ class SyncStats:
         Per side: messages dropped because they were not newer than the last pair.
     duplicates : dict
         Per side: messages that replaced a queued one with the same stamp.
+    restarts : int
+        Stamps that jumped back by more than the restart threshold (input restarted).
 
     """
 
@@ -73,6 +78,7 @@ class SyncStats:
     unmatched: dict = field(default_factory=lambda: dict.fromkeys(SIDES, 0))
     late: dict = field(default_factory=lambda: dict.fromkeys(SIDES, 0))
     duplicates: dict = field(default_factory=lambda: dict.fromkeys(SIDES, 0))
+    restarts: int = 0
 
     @property
     def unsynchronized(self) -> int:
@@ -92,18 +98,23 @@ class StereoSynchronizer(Generic[T]):
         Largest stamp difference of an approximate pair (s), >= 0; ignored when exact.
     queue_size : int
         Messages kept per side while waiting for a partner, >= 1.
+    restart_jump_s : float
+        A stamp this much (s) before the newest one of its side restarts the pairing, > 0.
 
     """
 
     def __init__(self, mode: str = 'approximate', slop_s: float = 0.005,
-                 queue_size: int = 10) -> None:
+                 queue_size: int = 10, restart_jump_s: float = 1.0) -> None:
         if mode not in ('exact', 'approximate'):
             raise ValueError(f"sync mode must be 'exact' or 'approximate', got {mode!r}")
         if not slop_s >= 0.0:
             raise ValueError(f'sync slop must be >= 0 s, got {slop_s!r}')
         if int(queue_size) < 1:
             raise ValueError(f'sync queue size must be >= 1, got {queue_size!r}')
+        if not restart_jump_s > 0.0:
+            raise ValueError(f'sync restart jump must be > 0 s, got {restart_jump_s!r}')
         self.mode = mode
+        self.restart_ns = int(round(restart_jump_s * 1e9))
         self.slop_ns = 0 if mode == 'exact' else int(round(slop_s * 1e9))
         self.queue_size = int(queue_size)
         self.reset()
@@ -119,6 +130,10 @@ class StereoSynchronizer(Generic[T]):
     def queued(self, side: str) -> int:
         """Return the number of messages waiting on ``side`` ('left' or 'right')."""
         return len(self._stamps[side])
+
+    def newest(self, side: str) -> int | None:
+        """Return the newest stamp (ns) seen on ``side`` since the last (re)start, or None."""
+        return self._newest[side]
 
     def add_left(self, stamp_ns: int, item: T) -> list[StereoPair[T]]:
         """Add a left message; return the pairs it completes (zero or one)."""
@@ -142,6 +157,9 @@ class StereoSynchronizer(Generic[T]):
             raise ValueError(f"side must be 'left' or 'right', got {side!r}")
         other = 'right' if side == 'left' else 'left'
         stamp_ns = int(stamp_ns)
+        newest = self._newest[side]
+        if newest is not None and stamp_ns < newest - self.restart_ns:
+            self._restart()
         last = self._last_paired[side]
         if last is not None and stamp_ns <= last:
             self.stats.late[side] += 1
@@ -172,6 +190,16 @@ class StereoSynchronizer(Generic[T]):
         return []
 
     # -- internals ---------------------------------------------------------------------
+    def _restart(self) -> None:
+        """Start pairing afresh (stamps jumped back): queued messages count as unmatched."""
+        for side in SIDES:
+            self.stats.unmatched[side] += len(self._stamps[side])
+            self._stamps[side].clear()
+            self._items[side].clear()
+            self._last_paired[side] = None
+            self._newest[side] = None
+        self.stats.restarts += 1
+
     def _nearest(self, side: str, stamp_ns: int) -> int | None:
         """Index of the queued message of ``side`` nearest to ``stamp_ns`` within the slop."""
         stamps = self._stamps[side]
