@@ -155,6 +155,16 @@ class StereoCalibration:
     def from_models(cls, left: CameraModel, right: CameraModel, kind: str = 'rectified'
                     ) -> 'StereoCalibration':
         """Build and validate from two CameraModel records (see ``from_camera_info``)."""
+        try:
+            return cls._from_models(left, right, kind)
+        except np.linalg.LinAlgError as exc:  # e.g. tiny focal lengths with a skew term
+            raise CalibrationError(f'calibration matrices are numerically singular ({exc}): '
+                                   f'left P {left.P.ravel().tolist()}, right P '
+                                   f'{right.P.ravel().tolist()}') from None
+
+    @classmethod
+    def _from_models(cls, left: CameraModel, right: CameraModel, kind: str
+                     ) -> 'StereoCalibration':
         if kind not in INPUT_KINDS:
             raise CalibrationError(f'calibration kind must be one of {INPUT_KINDS}, got {kind!r}')
         for cam, name in ((left, 'left'), (right, 'right')):

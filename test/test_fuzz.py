@@ -144,8 +144,10 @@ def test_singular_projection_is_a_calibration_error():
     P0 = np.array([[1e-300, 0.0, 0.0, 0.0], [1.0, 1e-300, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
     P1 = np.array([[1e-300, 0.0, 0.0, -1e-300], [0.0, 1e-300, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
     left, right = (conv.camera_info_from_matrices(P, 1, 1) for P in (P0, P1))
-    with pytest.raises(CalibrationError, match='calibration matrices are singular'):
+    with pytest.raises(CalibrationError, match='calibration matrices are numerically singular'):
         conv.calibration_from_camera_info(left, right)
+    with pytest.raises(CalibrationError, match='numerically singular'):  # offline tools too
+        StereoCalibration.from_projections(P0, P1, 1, 1)
 
 
 def test_camera_info_with_wrong_array_lengths_is_a_calibration_error():

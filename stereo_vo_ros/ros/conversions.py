@@ -187,12 +187,7 @@ def calibration_from_camera_info(left: CameraInfo, right: CameraInfo,
         its checks but are numerically singular.
 
     """
-    try:
-        return StereoCalibration.from_camera_info(left, right, kind)
-    except np.linalg.LinAlgError as exc:  # e.g. fx = fy = 1e-300 with a skew term
-        raise CalibrationError(f'calibration matrices are singular ({exc}): left P '
-                               f'{[float(v) for v in left.p]}, right P '
-                               f'{[float(v) for v in right.p]}') from None
+    return StereoCalibration.from_camera_info(left, right, kind)
 
 
 def camera_info_from_matrices(P: np.ndarray, width: int, height: int,
