@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 
 from ..camera import StereoCalibration
-from ..errors import CalibrationError, ImageError
+from ..errors import ImageError
 from ..records import Correspondences, OdometryResult, TrackingStatus
 
 #: encoding -> (numpy dtype of one channel, channels). Everything else raises ImageError.
