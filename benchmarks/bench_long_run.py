@@ -27,8 +27,6 @@ import argparse
 import collections
 import os
 from pathlib import Path
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -47,6 +45,7 @@ from sensor_msgs.msg import CameraInfo, Image
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros.ros import conversions as conv  # noqa: E402
+from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # noqa: E402
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -139,18 +138,13 @@ def main() -> int:
                                turns=False)
     frames = list(render_sequence(spec))
     P0, P1 = spec.projections()
-    exe = Path(sys.executable).with_name('stereo_vo_node')
-    cmd = [str(exe)] if args.installed and exe.exists() else \
-        [sys.executable, '-m', 'stereo_vo_ros.ros.node']
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1')
     if not args.installed:
-        env['PYTHONPATH'] = os.pathsep.join([str(REPO_ROOT)] + (
-            [env['PYTHONPATH']] if env.get('PYTHONPATH') else []))
+        env = with_pythonpath(env, REPO_ROOT)
     log = tempfile.NamedTemporaryFile('w+', prefix='bench_long_run_node_', suffix='.log',
                                       delete=False)
-    proc = subprocess.Popen(cmd + ['--ros-args', '-p', 'ros.qos:=reliable', '-p',
-                                   f'ros.path_max_length:={args.path_max}'],
-                            env=env, stdout=log, stderr=subprocess.STDOUT)
+    proc = start_node(['-p', 'ros.qos:=reliable', '-p', f'ros.path_max_length:={args.path_max}'],
+                      env=env, stdout=log)
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
     feeder = Feeder(context, frames, P0, P1)
@@ -167,7 +161,7 @@ def main() -> int:
                 feeder.count_publishers('/odom') and feeder.count_publishers('/path')):
             time.sleep(0.05)
         time.sleep(1.0)
-        print(f'node: {" ".join(cmd)} (pid {proc.pid}, ROS_DOMAIN_ID={DOMAIN_ID}, log '
+        print(f'node: {" ".join(proc.args)} (pid {proc.pid}, ROS_DOMAIN_ID={DOMAIN_ID}, log '
               f'{log.name}); {args.frames} pairs of {args.width}x{args.height} mono8, '
               f'ros.path_max_length={args.path_max}, at most {args.window} in flight')
         print(f'{"pairs":>7} {"odom":>7} {"pairs/s":>8} {"node RSS MB":>12} {"path":>6} '
@@ -209,11 +203,7 @@ def main() -> int:
         executor.shutdown()
         feeder.destroy_node()
         rclpy.try_shutdown(context=context)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_node(proc)
         log.seek(0)
         lines = [line.rstrip() for line in log if line.startswith(('[WARN]', '[ERROR]'))]
         kinds = collections.Counter(line.split(']: ', 1)[-1][:90] for line in lines)

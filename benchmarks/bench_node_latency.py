@@ -31,8 +31,6 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -51,6 +49,7 @@ from sensor_msgs.msg import CameraInfo, Image
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros.ros import conversions as conv  # noqa: E402
+from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 1 + (os.getpid() * 13 + 5) % 200
@@ -159,11 +158,8 @@ def main() -> int:
     args = parser.parse_args()
 
     left, right, P0, P1, period = load_frames(args.data, args.frames)
-    exe = Path(sys.executable).with_name('stereo_vo_node')
-    cmd = [str(exe)] if exe.exists() else [sys.executable, '-m', 'stereo_vo_ros.ros.node']
-    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONPATH=str(REPO_ROOT))
-    proc = subprocess.Popen(cmd + ['--ros-args', '-p', 'ros.qos:=reliable', '--log-level',
-                                   'error'], env=env)
+    env = with_pythonpath(dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID)), REPO_ROOT)
+    proc = start_node(['-p', 'ros.qos:=reliable', '--log-level', 'error'], env=env)
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
     bench = Bench(context, left, right, P0, P1, period)
@@ -178,7 +174,7 @@ def main() -> int:
                 bench.count_publishers('/odom')):
             time.sleep(0.05)
         time.sleep(1.0)
-        print(f'node: {" ".join(cmd)} (ROS_DOMAIN_ID={DOMAIN_ID})')
+        print(f'node: {" ".join(proc.args)} (ROS_DOMAIN_ID={DOMAIN_ID})')
 
         # 1. latency well below capacity (the first pairs warm the pipeline up)
         publish_at(bench, args.latency_rate, 2.0)
@@ -219,11 +215,7 @@ def main() -> int:
         executor.shutdown()
         bench.destroy_node()
         rclpy.try_shutdown(context=context)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_node(proc)
     return 0
 
 

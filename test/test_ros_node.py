@@ -11,9 +11,7 @@ import contextlib
 import os
 from pathlib import Path
 import py_compile
-import signal
-import subprocess
-import sys
+import tempfile
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -38,6 +36,7 @@ from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.ros import conversions as conv
 from stereo_vo_ros.ros.node import StereoVONode
 from stereo_vo_ros.ros.player import BagPlayer
+from stereo_vo_ros.ros.process import node_process as node_subprocess, with_pythonpath
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -117,33 +116,17 @@ def harness():
     h.close()
 
 
-def _node_command() -> list[str]:
-    """Return the installed ``stereo_vo_node`` entry point, or ``python -m`` as a fallback."""
-    exe = Path(sys.executable).with_name('stereo_vo_node')
-    if exe.exists():
-        return [str(exe)]
-    return [sys.executable, '-m', 'stereo_vo_ros.ros.node']
-
-
 @contextlib.contextmanager
 def node_process(*ros_args: str):
     """Run the node as a separate process; yields a dict that receives its output."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
-               PYTHONPATH=os.pathsep.join([str(REPO_ROOT)] + (
-                   [os.environ['PYTHONPATH']] if os.environ.get('PYTHONPATH') else [])))
-    proc = subprocess.Popen(_node_command() + ['--ros-args', *ros_args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    env = with_pythonpath(dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1'),
+                          REPO_ROOT)
     result = {'output': '', 'returncode': None}
-    try:
-        yield result
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            out, _ = proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            out, _ = proc.communicate()
-        result['output'], result['returncode'] = out, proc.returncode
+    with tempfile.TemporaryFile('w+') as log:
+        with node_subprocess(ros_args, env=env, stdout=log, text=True) as proc:
+            yield result
+        log.seek(0)
+        result['output'], result['returncode'] = log.read(), proc.returncode
 
 
 def _camera_poses(odoms) -> np.ndarray:

@@ -19,8 +19,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 import shutil
-import subprocess
-import sys
 import threading
 import time
 from typing import Any
@@ -32,15 +30,6 @@ from ..config import Config, to_yaml
 from ..errors import DatasetError
 
 NODE_NAME = 'stereo_vo_node'
-
-
-def _node_command(params: Path) -> list[str]:
-    exe = shutil.which('stereo_vo_node')
-    here = Path(sys.executable).parent / 'stereo_vo_node'
-    if here.exists():
-        exe = str(here)
-    cmd = [exe] if exe else [sys.executable, '-m', 'stereo_vo_ros.ros.node']
-    return cmd + ['--ros-args', '--params-file', str(params), '-p', 'use_sim_time:=true']
 
 
 def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
@@ -79,6 +68,7 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
     from .conversions import camera_pose_from_base_pose, nanoseconds_from_time, \
         transform_from_xyz_rpy
     from .player import BagPlayer
+    from .process import node_process
 
     t_start = time.monotonic()
     config = config or Config()
@@ -102,61 +92,55 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
     env.setdefault('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
     os.environ['ROS_DOMAIN_ID'] = env['ROS_DOMAIN_ID']
     log_path = out / 'node.log'
-    with open(log_path, 'w') as log:
-        proc = subprocess.Popen(_node_command(params), stdout=log, stderr=subprocess.STDOUT,
-                                env=env, stdin=subprocess.DEVNULL)
-    rclpy.init()
-    received: dict[int, Any] = {}
-    got = threading.Condition()
-    try:
-        node = rclpy.create_node('stereo_vo_demo')
-
-        def on_odom(msg: Odometry) -> None:
-            with got:
-                received[nanoseconds_from_time(msg.header.stamp)] = msg
-                got.notify_all()
-        node.create_subscription(Odometry, 'odom', on_odom,
-                                 QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
-        spinner.start()
-        player = BagPlayer(node, bag, topics=topics, rate=None, publish_clock=True)
-        if not player.wait_for_subscribers(30.0, topics=image_topics):
-            raise DatasetError(f'the node did not subscribe to {image_topics} within 30 s; '
-                               f'see {log_path}')
-        time.sleep(0.5)  # let the node see the publishers (discovery both ways)
-        published: dict[int, int] = {}
-        deadline = t_rendered + timeout_s
-        stop = threading.Event()
-
-        def pace(topic: str, stamp_ns: int, msg: Any) -> None:
-            if topic not in image_topics:
-                return
-            key = nanoseconds_from_time(msg.header.stamp)
-            published[key] = published.get(key, 0) + 1
-            if published[key] < 2:
-                return
-            wait_until = min(time.monotonic() + per_frame_timeout_s, deadline)
-            with got:
-                while key not in received and time.monotonic() < wait_until:
-                    got.wait(0.05)
-            if time.monotonic() >= deadline:
-                stop.set()
-        stats = player.play(stop=stop, on_message=pace)
-        with got:  # the last odometry may still be on its way
-            end = time.monotonic() + per_frame_timeout_s
-            while len(received) < len(published) and time.monotonic() < end:
-                got.wait(0.05)
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
-        proc.terminate()
+    ros_args = ['--params-file', str(params), '-p', 'use_sim_time:=true']
+    with open(log_path, 'w') as log, node_process(ros_args, env=env, stdout=log) as proc:
+        rclpy.init()
+        received: dict[int, Any] = {}
+        got = threading.Condition()
         try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+            node = rclpy.create_node('stereo_vo_demo')
+
+            def on_odom(msg: Odometry) -> None:
+                with got:
+                    received[nanoseconds_from_time(msg.header.stamp)] = msg
+                    got.notify_all()
+            reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+            node.create_subscription(Odometry, 'odom', on_odom, reliable)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            spinner = threading.Thread(target=executor.spin, daemon=True)
+            spinner.start()
+            player = BagPlayer(node, bag, topics=topics, rate=None, publish_clock=True)
+            if not player.wait_for_subscribers(30.0, topics=image_topics):
+                raise DatasetError(f'the node did not subscribe to {image_topics} within 30 s; '
+                                   f'see {log_path}')
+            time.sleep(0.5)  # let the node see the publishers (discovery both ways)
+            published: dict[int, int] = {}
+            deadline = t_rendered + timeout_s
+            stop = threading.Event()
+
+            def pace(topic: str, stamp_ns: int, msg: Any) -> None:
+                if topic not in image_topics:
+                    return
+                key = nanoseconds_from_time(msg.header.stamp)
+                published[key] = published.get(key, 0) + 1
+                if published[key] < 2:
+                    return
+                wait_until = min(time.monotonic() + per_frame_timeout_s, deadline)
+                with got:
+                    while key not in received and time.monotonic() < wait_until:
+                        got.wait(0.05)
+                if time.monotonic() >= deadline:
+                    stop.set()
+            stats = player.play(stop=stop, on_message=pace)
+            with got:  # the last odometry may still be on its way
+                end = time.monotonic() + per_frame_timeout_s
+                while len(received) < len(published) and time.monotonic() < end:
+                    got.wait(0.05)
+            executor.shutdown(timeout_sec=1.0)
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
 
     stamps_ns = sorted(received)
     T_base_cam = transform_from_xyz_rpy(ros.base_from_camera_xyz, ros.base_from_camera_rpy_deg)
