@@ -4,8 +4,9 @@ Stereo KLT feature tracker with the light adaptive checks of paper 2.
 Every call to ``StereoTracker.track`` takes the current stereo pair (t2) and returns the
 quadruples (left t1, right t1, left t2, right t2) of the features that survive, in this order:
 
-1. temporal pass left(t1) -> left(t2) (initial flow from the motion prior when given), then the
-   forward-backward check (eq. 4, delta1);
+1. optional aperture check (``min_eigen_ratio``: features whose KLT window is edge-like are
+   dropped, here and at detection), temporal pass left(t1) -> left(t2) (initial flow from the
+   motion prior when given), then the forward-backward check (eq. 4, delta1);
 2. stereo pass left(t2) -> right(t2) starting at the previous (or predicted) disparity; the
    disparity constraint (eq. 6, delta3) and the disparity range run BEFORE the reverse pass, so
    rejected features are not tracked back; then the left-right check (eq. 5, delta2);
@@ -38,7 +39,7 @@ from .config import BucketingConfig, TrackerConfig
 from .errors import ConfigError, ImageError
 from .klt_checks import (
     bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint, disparity_in_range,
-    lk_pass, round_trip_error)
+    eigen_ratio, lk_pass, round_trip_error)
 from .records import Correspondences
 
 logger = logging.getLogger(__name__)
@@ -61,10 +62,10 @@ STAGES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircula
 #: KLT passes, keys of ``TrackerStats.pass_points``.
 PASSES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
           'new_stereo_fwd', 'new_stereo_bwd')
-#: Checks, keys of ``TrackerStats.failed``: KLT failure of the temporal pass, forward-backward,
-#: KLT failure of the stereo pass, disparity constraint, disparity range, left-right,
-#: KLT failure or threshold of the bi-circular check.
-CHECKS = ('temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr', 'bc')
+#: Checks, keys of ``TrackerStats.failed``: aperture (edge-like KLT window), KLT failure of the
+#: temporal pass, forward-backward, KLT failure of the stereo pass, disparity constraint,
+#: disparity range, left-right, KLT failure or threshold of the bi-circular check.
+CHECKS = ('aperture', 'temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr', 'bc')
 
 #: Motion prior: (prev_left_ideal (N, 2), prev_right_ideal (N, 2)) -> (cur_left_pred (N, 2),
 #: cur_right_pred (N, 2)), all float64 ideal pixels.
@@ -563,12 +564,20 @@ class StereoTracker:
         stats.used_prior = pred is not None
         t = clock()
         levels = cfg.predicted_pyramid_levels if pred is not None else cfg.pyramid_levels
-        npts['temporal_fwd'] = n_prev
-        cur_l, ok = lk_pass(prev_left, left, f.left_raw, None if pred is None else pred[0],
-                            levels, win, iters)
+        alive = np.arange(n_prev)
+        if cfg.min_eigen_ratio > 0 and n_prev:
+            # Aperture check: on an edge-like window the flow along the edge would come from
+            # the initial flow (the motion prior), not from the image.
+            ok = eigen_ratio(prev_left, f.left_raw, win) >= cfg.min_eigen_ratio
+            failed['aperture'] = int(np.count_nonzero(~ok))
+            alive = alive[ok]
+        npts['temporal_fwd'] = len(alive)
+        cur_l = f.left_raw.copy()
+        cur_l[alive], ok = lk_pass(prev_left, left, f.left_raw[alive],
+                                   None if pred is None else pred[0][alive], levels, win, iters)
         ms['temporal_fwd'] = (clock() - t) * 1e3
         failed['temporal'] = int(np.count_nonzero(~ok))
-        alive = np.flatnonzero(ok)
+        alive = alive[ok]
 
         t = clock()
         npts['temporal_bwd'] = len(alive)
@@ -684,6 +693,10 @@ class StereoTracker:
         if not len(pts):
             return
         submitted = pts
+        if cfg.min_eigen_ratio > 0:
+            pts = pts[eigen_ratio(left, pts, win) >= cfg.min_eigen_ratio]
+            if not len(pts):
+                return
         t = CLOCK()
         # Corners near a tracked feature start at its disparity (raw pixel offset) and need
         # few pyramid levels; the others are searched with the full pyramid.

@@ -20,7 +20,7 @@ from stereo_vo_ros.adaptive_threshold import adaptive_threshold, bicircular_thre
 from stereo_vo_ros.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfig
 from stereo_vo_ros.errors import ConfigError, ImageError
-from stereo_vo_ros.klt_checks import bicircular_error, CheckSet, disparity_constraint
+from stereo_vo_ros.klt_checks import bicircular_error, CheckSet, disparity_constraint, eigen_ratio
 from stereo_vo_ros.tracker import detect_corners, StereoTracker
 
 W, H = 400, 300
@@ -638,3 +638,45 @@ def test_config_dataclass_is_not_mutated():
     tracker = StereoTracker(cfg, BucketingConfig())
     tracker.track(*pair(M1), rectified_calib())
     assert dataclasses.asdict(cfg) == before
+
+
+def stripes(shift: tuple[float, float]) -> np.ndarray:
+    """uint8 image of vertical stripes with a faint vertical modulation (edges, no corners)."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    x, y = xs - shift[0], ys - shift[1]
+    v = 128 + 90 * np.sin(2 * np.pi * x / 23.0) * np.sin(2 * np.pi * x / 61.0) + \
+        4 * np.sin(2 * np.pi * y / 37.0)
+    return np.clip(np.round(v), 0, 255).astype(np.uint8)
+
+
+def test_eigen_ratio_separates_edges_from_corners():
+    pts = np.array([[100.0, 100.0], [200.0, 150.0], [300.0, 200.0]])
+    edges = eigen_ratio(stripes((0.0, 0.0)), pts, 21)
+    corners = eigen_ratio(render((0.0, 0.0)), pts, 21)
+    assert np.all(edges < 0.01) and np.all(corners > 0.1)
+    assert eigen_ratio(np.full((H, W), 77, np.uint8), pts, 21).tolist() == [0.0] * 3
+    assert eigen_ratio(render((0.0, 0.0)), np.zeros((0, 2)), 21).shape == (0,)
+
+
+def test_aperture_check_drops_edge_features():
+    calib = rectified_calib()
+
+    def stripe_pair(motion):
+        return stripes(motion), stripes((motion[0] - DISPARITY, motion[1]))
+
+    # Without the check the stripes give features (their vertical flow rests on a 4 grey-level
+    # modulation); with it none is detected, while a textured scene keeps its features.
+    off = StereoTracker(config(min_eigen_ratio=0.0), BucketingConfig())
+    assert off.track(*stripe_pair((0.0, 0.0)), calib).stats.n_features > 50
+    on = StereoTracker(config(min_eigen_ratio=0.1), BucketingConfig())
+    assert on.track(*stripe_pair((0.0, 0.0)), calib).stats.n_features == 0
+    textured = StereoTracker(config(min_eigen_ratio=0.1), BucketingConfig())
+    textured.track(*pair((0.0, 0.0)), calib)
+    res = textured.track(*pair((2.0, 1.0)), calib)
+    assert res.stats.failed['aperture'] < 0.1 * res.stats.n_previous
+    assert res.stats.n_tracked > 100
+    # Switched on at run time, the check drops the stripe features before the temporal pass.
+    off.cfg = config(min_eigen_ratio=0.1)
+    res = off.track(*stripe_pair((0.0, 3.0)), calib)
+    assert res.stats.failed['aperture'] == res.stats.n_previous > 50
+    assert res.stats.n_tracked == 0 and res.stats.pass_points['temporal_fwd'] == 0
