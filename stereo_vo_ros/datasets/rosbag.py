@@ -218,7 +218,6 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
                     data, step = buffer_from_grey(img, encoding, row_padding)
                     msg = Image(header=header, height=img.shape[0], width=img.shape[1],
                                 encoding=encoding, is_bigendian=0, step=step, data=data)
-                    writer.write(conns[side + 'i'], ns, ts.serialize_cdr(msg, IMAGE_TYPE))
                     info = CameraInfo(
                         header=header, height=cam.height, width=cam.width,
                         distortion_model=cam.distortion_model,
@@ -227,7 +226,10 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
                         binning_x=0, binning_y=0,
                         roi=T['sensor_msgs/msg/RegionOfInterest'](
                             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+                    # camera_info first: a player that waits for the odometry of each pair
+                    # after its second image must not hold back the calibration it needs.
                     writer.write(conns[side + 'c'], ns, ts.serialize_cdr(info, INFO_TYPE))
+                    writer.write(conns[side + 'i'], ns, ts.serialize_cdr(msg, IMAGE_TYPE))
                 if pose_iter is not None:
                     try:
                         pose = np.asarray(next(pose_iter), np.float64)
