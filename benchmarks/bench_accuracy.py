@@ -37,7 +37,7 @@ sequence and configuration are shared between the tables.
 
 Usage::
 
-    python benchmarks/bench_accuracy.py [--data /work/shared/data] [--frames N] [--repeat 3]
+    python benchmarks/bench_accuracy.py [--data ../shared/data] [--frames N] [--repeat 3]
         [--seed 0] [--quick] [--json results.json]
 
 ``--frames`` shortens every rendered sequence (default: the preset's count, 300 or 200); the
@@ -121,6 +121,10 @@ class Clip:
         """Return the same images and ground truth with another calibration."""
         frames = [StereoFrame(f.left, f.right, f.stamp_s, calib) for f in self.frames]
         return Clip(name, frames, self.gt, self.info, self.static)
+
+
+#: The read-only clips next to the repository (``../shared/data``), as CI lays them out.
+SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
 
 def load_real(folder: Path) -> Clip:
@@ -634,7 +638,7 @@ def jsonable(obj: object) -> object:
 def main() -> int:
     """Run the benchmark; return the process exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--data', type=Path, default=Path('/work/shared/data'),
+    parser.add_argument('--data', type=Path, default=SHARED_DATA,
                         help='folder holding the KITTI-layout clips (default: %(default)s)')
     parser.add_argument('--frames', type=int, default=None,
                         help='frames per rendered sequence (default: the preset count; '

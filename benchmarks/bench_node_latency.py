@@ -22,7 +22,7 @@ Targets (issue "The ROS 2 node"): median latency <= 30 ms, sustained >= 30 Hz.
 
 Usage::
 
-    python benchmarks/bench_node_latency.py [--data /work/shared/data] [--frames 40]
+    python benchmarks/bench_node_latency.py [--data ../shared/data] [--frames 40]
         [--rates 10 15 20 30 40 60] [--seconds 4]
 """
 
@@ -54,6 +54,10 @@ from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 1 + (os.getpid() * 13 + 5) % 200
 KITTI_CLIP = 'kitti01_f0000-0050'
+
+
+#: The read-only clips next to the repository (``../shared/data``), as CI lays them out.
+SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
 
 def load_frames(data: Path, n: int):
@@ -149,7 +153,7 @@ def publish_at(bench: Bench, rate_hz: float, seconds: float) -> list[int]:
 def main() -> int:
     """Run the benchmark and print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
-    parser.add_argument('--data', type=Path, default=Path('/work/shared/data'))
+    parser.add_argument('--data', type=Path, default=SHARED_DATA)
     parser.add_argument('--frames', type=int, default=40)
     parser.add_argument('--latency-rate', type=float, default=5.0)
     parser.add_argument('--latency-pairs', type=int, default=60)

@@ -23,7 +23,7 @@ right reprojection errors.
 
 Usage::
 
-    python benchmarks/bench_tracker.py [--data /work/shared/data] [--repeat 3] [--clock cpu]
+    python benchmarks/bench_tracker.py [--data ../shared/data] [--repeat 3] [--clock cpu]
 
 ``--clock cpu`` times with the thread CPU clock (``time.thread_time``), which a busy machine
 disturbs less than the wall clock (OpenCV runs in the calling thread with one thread).
@@ -48,6 +48,10 @@ from stereo_vo_ros.klt_checks import lk_pass, round_trip_error  # noqa: E402
 from stereo_vo_ros.tracker import STAGES, StereoTracker  # noqa: E402
 
 CHECK_KEYS = ('temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr', 'bc')
+
+
+#: The read-only clips next to the repository (``../shared/data``), as CI lays them out.
+SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
 
 def load_clip(folder: Path) -> tuple[list, list, StereoCalibration, np.ndarray]:
@@ -245,7 +249,7 @@ def bicircular_table(clips: dict, prior: str) -> None:
 def main() -> int:
     """Run the benchmark; return the process exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--data', type=Path, default=Path('/work/shared/data'),
+    parser.add_argument('--data', type=Path, default=SHARED_DATA,
                         help='folder holding KITTI-layout clips (default: %(default)s)')
     parser.add_argument('--clips', nargs='*', default=['kitti06_f0000-0050',
                                                        'kitti01_f0000-0050'])
