@@ -603,14 +603,20 @@ def test_absurd_set_pose_never_publishes_non_finite_odometry(make_rig):
 
 # -- load ----------------------------------------------------------------------------------
 def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(make_rig):
+    """
+    Flood the node at three times the rate its processing allows: drops, no queue.
+
+    The publisher shares this process (and the GIL) with the composed node, so the flood also
+    slows the node's executor down; the end-to-end latency under a real overload, node in its
+    own process, is measured by ``benchmarks/bench_node_latency.py``. What is asserted here is
+    the design: pairs are dropped and counted, the node's own latency (arrival to publish)
+    stays about one processing time, and the newest pair is processed right after the flood.
+    """
     rig = make_rig()
     rig.camera_info()
-    # Measure the rate the node sustains, pair by pair (publish -> odometry).
-    t0 = time.perf_counter()
-    rig.good_run(range(10))
-    period_s = (time.perf_counter() - t0) / 10
+    rig.good_run(range(15))  # warm: the processing time below is the steady one
+    period_s = max(float(rig.value('processing_ms')) * 1e-3, 1e-3)
     rate_hz = 3.0 / period_s
-    sent = {}
     arrivals = {}
     watch = rig.odom
 
@@ -619,35 +625,34 @@ def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(mak
     sub = rig.h.node.create_subscription(Odometry, f'/{rig.name}/odom', on_odom, 100)
     try:
         assert rig.h.wait_for(lambda: sub.get_publisher_count() >= 1, 10.0)
-        order = list(range(10, N_FRAMES)) + list(range(N_FRAMES - 2, 0, -1))  # ping-pong
+        order = list(range(15, N_FRAMES)) + list(range(N_FRAMES - 2, 0, -1))  # ping-pong
         start = time.perf_counter()
-        duration_s = 4.0
+        duration_s = 3.0
         k = 0
         while time.perf_counter() - start < duration_s:
             i = order[k % len(order)]
-            ns = rig.stamp(10) + k * 100_000_000
-            sent[ns] = time.perf_counter()
+            ns = rig.stamp(15) + k * 100_000_000
             rig.send(rig.frames[i].left, rig.frames[i].right, ns)
             k += 1
             next_t = start + k / rate_hz
             while time.perf_counter() < next_t:
                 time.sleep(0.0005)
-        last_ns = ns
+        flood_end, last_ns = time.perf_counter(), ns
+        # Newest wins: the last pair comes out about one processing time after the flood, not
+        # after a backlog of the k pairs sent (k * period_s would be about 3 * duration_s).
         assert rig.h.wait_for(lambda: last_ns in arrivals, 10.0), rig.status()
+        assert arrivals[last_ns] - flood_end < max(20 * period_s, 1.0), \
+            (arrivals[last_ns] - flood_end, k, period_s)
     finally:
         rig.h.destroy(sub)
+    time.sleep(0.2)  # let the diagnostics counters settle
     dropped = rig.count('dropped_pairs')
     received = rig.count('pairs_received')
-    assert dropped > 0, rig.status()
+    assert dropped > 0 and k > 2 * len(arrivals), rig.status()
     assert rig.count('pairs_processed') == received - dropped  # every other one
-    latency = np.array([arrivals[ns] - sent[ns] for ns in arrivals if ns in sent])
-    # Some are still processed (the publisher shares the CPU and the GIL with the node).
-    assert len(latency) >= max(10, 0.1 * duration_s / period_s), (len(latency), k, period_s)
-    third = len(latency) // 3
-    # Bounded: no queue builds up (the newest pair wins), so the latency does not grow.
-    assert np.percentile(latency, 95) < max(10 * period_s, 0.5), np.percentile(latency, 95)
-    assert np.median(latency[-third:]) < np.median(latency[:third]) + max(3 * period_s, 0.1)
-    assert float(rig.value('latency_ms')) < max(10 * period_s, 0.5) * 1e3
+    assert len(arrivals) >= 3, (len(arrivals), k, period_s)  # still processing while flooded
+    # The node's own latency (arrival -> published) stays about one processing time.
+    assert float(rig.value('latency_ms')) < max(10 * period_s, 0.5) * 1e3, rig.status()
     rig.assert_logged('stereo pair dropped: pairs arrive faster than they are processed', WARN)
     assert watch.problems == []
     rig.assert_healthy()
