@@ -160,9 +160,23 @@ class MotionEstimator:
         Returns
         -------
         MotionEstimate. On OK the filter state is updated; otherwise the state coasts (the
-        prediction is kept with an inflated covariance) and the estimate carries it.
+        prediction is kept with an inflated covariance) and the estimate carries it. A
+        numerically singular solve re-initialises the velocity and reports DEGENERATE.
 
         """
+        try:
+            return self._estimate(corr, calib, dt, calib_cur, image_size)
+        except np.linalg.LinAlgError as exc:  # numerically degenerate geometry or state
+            why = f'motion estimate failed (LinAlgError: {exc}); velocity re-initialised'
+            LOG.warning(why)
+            self.reset()
+            return self._fail(TrackingStatus.DEGENERATE, dt, np.zeros(len(corr), bool), 0, 0,
+                              why)
+
+    def _estimate(self, corr: Correspondences, calib: StereoCalibration, dt: float,
+                  calib_cur: StereoCalibration | None = None,
+                  image_size: tuple[int, int] | None = None) -> MotionEstimate:
+        """Body of :meth:`estimate` (which turns a singular solve into DEGENERATE)."""
         cfg = self.config
         prior_mean, prior_cov = self.predict()
         n_all = len(corr)

@@ -174,20 +174,12 @@ class StereoOdometry:
         track = self._track(frame, prior, timings)
         corr = track.correspondences if track is not None else None
         t0 = time.perf_counter()
-        failure = 'no correspondences'
         if corr is None or len(corr) == 0:
             est = None
             self.estimator.coast()
         else:
-            try:
-                est = self.estimator.estimate(corr, prev_calib, dt,
-                                              calib_cur=calib if calib_changed else None)
-            except np.linalg.LinAlgError as exc:  # numerically degenerate solve
-                LOG.warning('motion estimate failed (LinAlgError: %s): velocity re-initialised',
-                            exc)
-                self.estimator.reset()
-                est = None
-                failure = f'motion estimate failed (LinAlgError: {exc}); velocity re-initialised'
+            est = self.estimator.estimate(corr, prev_calib, dt,
+                                          calib_cur=calib if calib_changed else None)
         self._check_velocity_state()
         timings['estimate'] = (time.perf_counter() - t0) * 1e3
         ok = est is not None and est.status is TrackingStatus.OK
@@ -198,7 +190,7 @@ class StereoOdometry:
         else:
             self._lost_time += dt
             status = est.status if est is not None else TrackingStatus.DEGENERATE
-            message = est.message if est is not None else failure
+            message = est.message if est is not None else 'no correspondences'
             blank = _uniform_images(frame)
             if blank:
                 message = f'{blank}; {message}'
