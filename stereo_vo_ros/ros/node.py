@@ -524,11 +524,7 @@ class StereoVONode(Node):
                 self._process(*item)
             except Exception as exc:  # never let a bug stop the worker: log it, report it
                 # The odometry state may be what fails: restart it rather than fail forever.
-                with self._pipeline_lock:
-                    self._pipeline.reset()
-                    self._path.clear()
-                    self._last_stamp_ns = None
-                self._counts['resets'] += 1
+                self._restart_odometry()
                 self._error(f'{type(exc).__name__} while processing a pair: {exc}; the '
                             'odometry restarts at the identity with the next pair\n'
                             f'{traceback.format_exc()}')
@@ -592,11 +588,7 @@ class StereoVONode(Node):
         self._counts['processed'] += 1
         if not odom.is_finite():
             self._counts['non_finite'] += 1
-            with self._pipeline_lock:
-                self._pipeline.reset()
-                self._path.clear()
-                self._last_stamp_ns = None
-            self._counts['resets'] += 1
+            self._restart_odometry()
             self._error(f'non-finite odometry at {pair.stamp_ns * 1e-9:.9f} s '
                         f'({result.status.value}): not published; the odometry restarts at the '
                         'identity with the next pair')
@@ -630,18 +622,23 @@ class StereoVONode(Node):
             self._debug_pub.publish(conv.image_from_numpy(img, 'bgr8', stamp, camera_frame))
 
     # -- services ----------------------------------------------------------------------
-    def _on_reset(self, request: Trigger.Request, response: Trigger.Response
-                  ) -> Trigger.Response:
+    def _restart_odometry(self, drop_pending: bool = False) -> None:
+        """Restart at the identity (pose, velocity, features, path); count it as a reset."""
         with self._pipeline_lock:
             self._pipeline.reset()
             self._path.clear()
             self._last_stamp_ns = None
-            if self._sync is not None:
-                with self._sync_lock:
-                    self._sync.reset()
-            with self._slot_lock:
-                self._slot = None
+            if drop_pending:  # also forget the images not yet paired or processed
+                if self._sync is not None:
+                    with self._sync_lock:
+                        self._sync.reset()
+                with self._slot_lock:
+                    self._slot = None
         self._counts['resets'] += 1
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        self._restart_odometry(drop_pending=True)
         self.get_logger().info('odometry reset: the next pair starts at the identity')
         response.success = True
         response.message = 'odometry reset; the next stereo pair starts at the identity pose'
