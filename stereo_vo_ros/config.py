@@ -66,6 +66,15 @@ class TrackerConfig:
         'flow, so a wrong motion prior confirms itself. 0 disables (default: 0.1, the SIFT '
         'edge test, lessens the speed collapse on the highway render but costs accuracy on '
         'the urban one).', 0.0, 1.0, dynamic=True)
+    affine_refinement: bool = _f(
+        True, 'Refine every KLT match that passed its checks (temporal and stereo) with an '
+        'affine window model (not in the paper): a translation-only window is biased where the '
+        'view deforms (walls growing as the car approaches, the sheared road between left and '
+        'right).', dynamic=True)
+    affine_win_size_px: int = _f(
+        21, 'Window side of the affine refinement (pixels, odd).', 5, 61, dynamic=True)
+    affine_iterations: int = _f(
+        3, 'Gauss-Newton steps of the affine refinement.', 1, 50, dynamic=True)
     variant: str = _f(
         'full', 'Which checks run: baseline (forward-backward + left-right, VINS-Fusion), '
         'dc (+disparity constraint), bc (+bi-circular check), db (dc+bc, fixed threshold), '

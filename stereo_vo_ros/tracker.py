@@ -6,14 +6,18 @@ quadruples (left t1, right t1, left t2, right t2) of the features that survive, 
 
 1. optional aperture check (``min_eigen_ratio``: features whose KLT window is edge-like are
    dropped, here and at detection), temporal pass left(t1) -> left(t2) (initial flow from the
-   motion prior when given), then the forward-backward check (eq. 4, delta1);
+   motion prior when given), then the forward-backward check (eq. 4, delta1); the survivors
+   are refined with an affine window model (``affine_refinement``, not in the paper: see
+   ``affine_klt``);
 2. stereo pass left(t2) -> right(t2) starting at the previous (or predicted) disparity; the
    disparity constraint (eq. 6, delta3) and the disparity range run BEFORE the reverse pass, so
-   rejected features are not tracked back; then the left-right check (eq. 5, delta2);
+   rejected features are not tracked back; then the left-right check (eq. 5, delta2) and the
+   affine refinement (on rectified input along the row, with a plane of disparity);
 3. light bi-circular check (eq. 7) between right(t2) and right(t1) with a fixed or adaptive
    (eq. 8) threshold delta_d;
 4. replenishment: Shi-Tomasi corners are detected only in the buckets of the bucketing grid that
-   lack features, away from the existing features, and matched into the right image.
+   lack features, away from the existing features, and matched (and refined) into the right
+   image.
 
 A feature is deleted at its first failed check. Which checks run is set by
 ``TrackerConfig.variant`` (see ``klt_checks.CheckSet``). KLT runs on the images as given (raw
@@ -34,6 +38,7 @@ import numpy as np
 
 from . import bucketing
 from .adaptive_threshold import bicircular_threshold
+from .affine_klt import refine_affine
 from .camera import StereoCalibration
 from .config import BucketingConfig, TrackerConfig
 from .errors import ConfigError, ImageError
@@ -58,7 +63,7 @@ DETECTION_OVERSAMPLING = 1.0
 BARREN_BUCKET_FRAMES = 8
 #: Timed stages, keys of ``TrackerStats.timings_ms`` (plus ``total``).
 STAGES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
-          'detection')
+          'detection', 'affine')
 #: KLT passes, keys of ``TrackerStats.pass_points``.
 PASSES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
           'new_stereo_fwd', 'new_stereo_bwd')
@@ -587,6 +592,7 @@ class StereoTracker:
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
         alive = alive[ok]
+        cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
         #    disparity constraint (eq. 6) and range run before the reverse pass.
@@ -628,6 +634,9 @@ class StereoTracker:
             ok &= rng
         alive, cur_r, ideal_l, ideal_r = alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok]
         ms['stereo_bwd'] = (clock() - t) * 1e3
+        if cfg.affine_refinement and len(alive):
+            cur_r = self._refine(left, right, cur_l[alive], cur_r, stats, stereo=True)
+            ideal_r = calib.undistort_right(cur_r)
 
         ages = f.ages[alive] + 1
         stats.loss = n_prev - len(alive)
@@ -665,6 +674,19 @@ class StereoTracker:
                               cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
         self._feats = _Features(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
         return corr, raw
+
+    def _refine(self, img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
+                pts_to: np.ndarray, stats: TrackerStats, stereo: bool = False) -> np.ndarray:
+        """Affine refinement of matches (raw pixels) when configured, timed as ``affine``."""
+        cfg = self.cfg
+        if not cfg.affine_refinement or not len(pts_from):
+            return pts_to
+        t = CLOCK()
+        horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
+        out, _ = refine_affine(img_from, img_to, pts_from, pts_to, cfg.affine_win_size_px,
+                               cfg.affine_iterations, horizontal=horizontal)
+        stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
+        return out.astype(pts_to.dtype)
 
     def _replenish(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
                    stats: TrackerStats) -> None:
@@ -726,6 +748,9 @@ class StereoTracker:
         back, ok = lk_pass(right, left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
         ok &= round_trip_error(pts, back) < cfg.lr_threshold_px
         stats.timings_ms['stereo_bwd'] += (CLOCK() - t) * 1e3
+        if cfg.affine_refinement and ok.any():
+            pr[ok] = self._refine(left, right, pts[ok], pr[ok], stats, stereo=True)
+            ir[ok] = calib.undistort_right(pr[ok])
         n = int(np.count_nonzero(ok))
         stats.n_added = n
         if chosen is not None and n:

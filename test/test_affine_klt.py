@@ -1,0 +1,117 @@
+"""
+Tests of the affine refinement of KLT matches (``stereo_vo_ros.affine_klt``) with real OpenCV.
+
+The images are an analytic texture (a sum of random sinusoids) seen through exact affine maps,
+so the true match of every point is known to machine precision.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereo_vo_ros.affine_klt import refine_affine
+from stereo_vo_ros.klt_checks import lk_pass
+
+W, H = 360, 240
+
+
+def texture(x: np.ndarray, y: np.ndarray, seed: int = 3) -> np.ndarray:
+    """Return the grey levels of a sinusoid texture at float pixel coordinates (20..235)."""
+    rng = np.random.default_rng(seed)
+    v = np.zeros(np.broadcast(x, y).shape)
+    for _ in range(30):
+        k = 2 * np.pi / rng.uniform(5.0, 25.0)
+        t = rng.uniform(0, np.pi)
+        v += rng.uniform(0.5, 1.0) * np.sin(k * np.cos(t) * x + k * np.sin(t) * y
+                                            + rng.uniform(0, 2 * np.pi))
+    return 128.0 + 100.0 * v / 8.0
+
+
+def warped(M: np.ndarray, t: np.ndarray, gain: float = 1.0, bias: float = 0.0) -> np.ndarray:
+    """uint8 image whose content at p in ``texture`` appears at M p + t."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    Minv = np.linalg.inv(M)
+    qx, qy = xs - t[0], ys - t[1]
+    v = texture(Minv[0, 0] * qx + Minv[0, 1] * qy, Minv[1, 0] * qx + Minv[1, 1] * qy)
+    return np.clip(np.round(gain * v + bias), 0, 255).astype(np.uint8)
+
+
+def grid_points() -> np.ndarray:
+    """Points well inside the image (pixels)."""
+    xs, ys = np.meshgrid(np.linspace(60, W - 60, 8), np.linspace(60, H - 60, 5))
+    return np.stack([xs.ravel(), ys.ravel()], axis=1) + 0.37
+
+
+def truth(M: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Where the affine map sends points of the unwarped image."""
+    return pts @ M.T + t
+
+
+@pytest.mark.parametrize('M', [np.array([[1.10, 0.0], [0.0, 1.10]]),    # approaching wall
+                               np.array([[1.0, 0.08], [0.0, 1.12]]),    # road-like stretch
+                               np.array([[0.95, 0.03], [-0.03, 0.95]])])  # receding, turning
+def test_refinement_recovers_deformed_windows_better_than_translation_klt(M):
+    t = np.array([3.3, -2.1])
+    img0 = warped(np.eye(2), np.zeros(2))
+    img1 = warped(M, t)
+    pts = grid_points()
+    true = truth(M, t, pts)
+    klt, ok = lk_pass(img0, img1, pts, true + 0.6, 1, 21, 30)
+    assert ok.all()
+    refined, ok = refine_affine(img0, img1, pts, klt, win_size_px=15, iterations=5)
+    assert ok.all()
+    err_klt = np.linalg.norm(klt - true, axis=1)
+    err_ref = np.linalg.norm(refined - true, axis=1)
+    assert np.median(err_ref) < 0.03
+    assert np.median(err_ref) < 0.5 * np.median(err_klt)
+    assert refined.dtype == np.float64
+
+
+def test_horizontal_mode_fixes_the_row_and_fits_a_disparity_plane():
+    # Right image of a slanted plane: disparity 14 px + 0.3 px per row (like a road).
+    M = np.array([[1.0, 0.3], [0.0, 1.0]])
+    t = np.array([-14.0 - 0.3 * 0.0, 0.0])
+    left = warped(np.eye(2), np.zeros(2))
+    right = warped(M, t)
+    pts = grid_points()
+    true = truth(M, t, pts)
+    start = true + np.array([0.7, 0.4])  # a KLT result off the row
+    refined, ok = refine_affine(left, right, pts, start, win_size_px=15, iterations=5,
+                                horizontal=True)
+    assert ok.all()
+    np.testing.assert_array_equal(refined[:, 1], pts[:, 1])
+    assert np.max(np.abs(refined[:, 0] - true[:, 0])) < 0.05
+
+
+def test_brightness_change_does_not_move_the_match():
+    M, t = np.array([[1.05, 0.0], [0.0, 1.05]]), np.array([1.5, 0.5])
+    img0 = warped(np.eye(2), np.zeros(2))
+    img1 = warped(M, t, gain=0.7, bias=30.0)
+    pts = grid_points()
+    true = truth(M, t, pts)
+    refined, ok = refine_affine(img0, img1, pts, true + 0.5, win_size_px=15, iterations=5)
+    assert ok.all()
+    assert np.median(np.linalg.norm(refined - true, axis=1)) < 0.03
+
+
+def test_failures_keep_the_start_and_inputs_are_not_modified():
+    img0 = warped(np.eye(2), np.zeros(2))
+    flat = np.full((H, W), 90, np.uint8)
+    pts = grid_points()
+    start = pts + 1.0
+    before = start.copy()
+    refined, ok = refine_affine(img0, flat, pts, start, horizontal=True)
+    assert np.all(np.isfinite(refined))
+    np.testing.assert_array_equal(start, before)  # caller's array untouched
+    # Nothing to fit on a flat image: every point is refused and stays where it started.
+    assert not ok.any()
+    np.testing.assert_array_equal(refined, start)
+    # A match that would jump farther than max_shift_px is refused.
+    far = truth(np.eye(2), np.array([6.0, 0.0]), pts)
+    img1 = warped(np.eye(2), np.array([6.0, 0.0]))
+    refined, ok = refine_affine(img0, img1, pts, far - 1.5, max_shift_px=1.0)
+    np.testing.assert_array_equal(refined[~ok], (far - 1.5)[~ok])
+    assert not ok.all()
+    out, ok = refine_affine(img0, img0, np.zeros((0, 2)), np.zeros((0, 2)))
+    assert out.shape == (0, 2) and ok.shape == (0,)
