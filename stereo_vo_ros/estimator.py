@@ -29,6 +29,8 @@ from .ransac import BatchedMeasurement, ransac, reprojection_errors
 from .records import Correspondences, MotionEstimate, TrackingStatus
 
 LOG = logging.getLogger(__name__)
+#: Coasting inflates the velocity variances up to this many times the initial ones.
+COAST_VARIANCE_CAP = 1.0
 
 
 def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
@@ -130,9 +132,11 @@ class MotionEstimator:
         self.mean = mean
         if factor > 1:
             cov = cov * factor
-            # Cap every standard deviation at 10x the initial one with a congruence D C D
-            # (D diagonal, <= 1): unlike an element-wise minimum it keeps C positive definite.
-            cap = np.diag(self.initial_covariance()) * 100.0
+            # Cap every standard deviation at the initial one (after a loss the velocity is
+            # no better known than at the start; a wider prior stops RANSAC hypotheses from
+            # converging) with a congruence D C D (D diagonal, <= 1): unlike an element-wise
+            # minimum it keeps C positive definite.
+            cap = np.diag(self.initial_covariance()) * COAST_VARIANCE_CAP
             d = np.sqrt(np.minimum(1.0, cap / np.maximum(np.diag(cov), 1e-300)))
             cov = cov * np.outer(d, d)
         self.cov = 0.5 * (cov + cov.T)
