@@ -60,12 +60,12 @@ class TrackerConfig:
         True, 'Predict feature positions from the constant-velocity prior (initial flow).')
     max_iterations: int = _f(30, 'KLT iterations per pyramid level.', 1, 200)
     min_eigen_ratio: float = _f(
-        0.0, 'Aperture check: drop a feature (at detection and before every temporal pass) '
+        0.03, 'Aperture check: drop a feature (at detection and before every temporal pass) '
         'whose KLT window has a gradient matrix with smaller/larger eigenvalue below this; on '
-        'straight edges (lane lines) KLT leaves the displacement along the edge at the initial '
-        'flow, so a wrong motion prior confirms itself. 0 disables (default: 0.1, the SIFT '
-        'edge test, lessens the speed collapse on the highway render but costs accuracy on '
-        'the urban one).', 0.0, 1.0, dynamic=True)
+        'straight edges (the horizon, lane lines) KLT leaves the displacement along the edge at '
+        'the initial flow, so a wrong motion prior confirms itself. 0.03 drops only near-perfect '
+        'edges; 0.1 (the SIFT edge test) also drops useful features on the urban renders. 0 '
+        'disables.', 0.0, 1.0, dynamic=True)
     affine_refinement: bool = _f(
         True, 'Refine every KLT match that passed its checks (temporal and stereo) with an '
         'affine window model (not in the paper): a translation-only window is biased where the '
