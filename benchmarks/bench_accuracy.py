@@ -90,12 +90,27 @@ DEGRADATIONS = {
 }
 #: Calibration error of the ``wrong calib`` row: focal factor, baseline factor, pp shift (px).
 CALIB_ERROR = (1.005, 1.01, 2.0)
-#: Ablation rows: (variant, bicircular_mode or None for the default).
-ABLATION = (('baseline', None), ('dc', None), ('bc', None), ('db', None),
-            ('full', 'closure'), ('full', 'roundtrip'))
+#: Ablation rows: (variant, bicircular_mode or None for the default, departures switched off).
+#: The last three rows switch off this package's two departures from paper 2's tracker (the
+#: affine refinement of every match and the aperture check); "neither" is the paper's tracker.
+NO_AFFINE = {'tracker.affine_refinement': False}
+NO_APERTURE = {'tracker.min_eigen_ratio': 0.0}
+ABLATION = (('baseline', None, {}), ('dc', None, {}), ('bc', None, {}), ('db', None, {}),
+            ('full', 'closure', {}), ('full', 'roundtrip', {}),
+            ('full', 'closure', NO_AFFINE), ('full', 'closure', NO_APERTURE),
+            ('full', 'closure', {**NO_AFFINE, **NO_APERTURE}))
 GOOD = (TrackingStatus.OK, TrackingStatus.INITIALIZING)
 #: An inlier whose current left pixel is this far (px) from its true-motion transfer is bad.
 BAD_INLIER_PX = 3.0
+
+
+def departures_off(extra: dict) -> str:
+    """Label of the departures an ablation row switches off."""
+    if not extra:
+        return '-'
+    names = [name for name, part in (('affine', NO_AFFINE), ('aperture', NO_APERTURE))
+             if all(extra.get(k) == v for k, v in part.items())]
+    return 'neither' if len(names) == 2 else f'no {names[0]}'
 
 
 # -- sequences ------------------------------------------------------------------------------
@@ -518,26 +533,30 @@ def table_degradations(base: SequenceSpec, cache: dict, runner: Runner) -> dict:
 def table_ablation(clips: list, runner: Runner) -> dict:
     """Table 5: paper 2's ablation per tracker variant on the urban render and KITTI clips."""
     print('\n== 5. Tracker ablation (paper 2, Tables I/II style): default configuration but '
-          'tracker.variant (and bicircular_mode); feat/inl: per frame; inl %: inliers / '
+          'tracker.variant (and bicircular_mode; off: the departures from the paper switched '
+          "off, affine refinement and aperture check; neither = paper 2's tracker); feat/inl: "
+          'per frame; inl %: inliers / '
           f'features; bad%: inliers > {BAD_INLIER_PX:.0f} px from their true-motion transfer; '
           'track ms: median wall time of the tracker; cpu ms: median thread CPU time of the '
           'whole process() ==')
-    print(f'{"sequence":20s} {"variant":9s} {"bc mode":9s} {"t_rel %":>8s} {"r_rel":>6s} '
+    print(f'{"sequence":20s} {"variant":9s} {"bc mode":9s} {"off":11s} {"t_rel %":>8s} '
+          f'{"r_rel":>6s} '
           f'{"drift %":>8s} {"ATE m":>7s} {"feat":>6s} {"inl":>6s} {"inl %":>6s} '
           f'{"bad%":>5s} {"lost":>4s} {"track ms":>8s} {"cpu ms":>6s}')
     results = {}
     for clip in clips:
         results[clip.name] = {}
-        for variant, mode in ABLATION:
-            overrides = {'tracker.variant': variant}
+        for variant, mode, extra in ABLATION:
+            overrides = {'tracker.variant': variant, **extra}
             if mode is not None:
                 overrides['tracker.bicircular_mode'] = mode
+            off = departures_off(extra)
             s = summary(clip, runner(clip, **overrides))
             shown = mode or (Config().tracker.bicircular_mode
                              if variant in ('bc', 'db') else '-')
-            results[clip.name][f'{variant}/{shown}'] = s
+            results[clip.name][f'{variant}/{shown}' + ('' if off == '-' else f'/{off}')] = s
             ratio = 100.0 * s['inliers_per_frame'] / max(s['features_per_frame'], 1e-9)
-            print(f'{clip.name:20s} {variant:9s} {shown:9s} {fmt(s["t_rel_pct"], 8, 3)} '
+            print(f'{clip.name:20s} {variant:9s} {shown:9s} {off:11s} {fmt(s["t_rel_pct"], 8, 3)} '
                   f'{fmt(s["r_rel_deg_per_100m"], 6, 3)} {fmt(s["end_drift_pct"], 8, 3)} '
                   f'{fmt(s["ate_rmse_m"], 7, 3)} {s["features_per_frame"]:6.1f} '
                   f'{s["inliers_per_frame"]:6.1f} {ratio:6.1f} {s["bad_inlier_pct"]:5.1f} '
