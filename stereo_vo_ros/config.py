@@ -170,6 +170,17 @@ class RansacConfig:
     inlier_threshold_px: float = _f(
         2.0, 'Inlier if the Euclidean reprojection error in both current images is below this '
         '(pixels).', 0.05, 100.0, dynamic=True)
+    adaptive_threshold: bool = _f(
+        True, 'Tighten the inlier threshold of the final update to the residual scale of the '
+        'best hypothesis: adaptive_sigmas times sigma, sigma from the median inlier error '
+        '(2-D Gaussian errors), between min_inlier_threshold_px and inlier_threshold_px.',
+        dynamic=True)
+    adaptive_sigmas: float = _f(
+        4.0, 'Adaptive inlier threshold in sigmas of the residual (4: 99.97 % of 2-D Gaussian '
+        'errors fall inside).', 1.0, 100.0, dynamic=True)
+    min_inlier_threshold_px: float = _f(
+        1.0, 'Lower bound of the adaptive inlier threshold (pixels).', 0.05, 100.0,
+        dynamic=True)
     hypothesis_iterations: int = _f(
         3, 'Filter iterations per hypothesis on its minimal sample.', 1, 100)
     seed: int = _f(0, 'Seed of the random sampler (deterministic runs).', 0, 2**31 - 1)

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import bucketing
 from .camera import StereoCalibration
-from .config import Config
+from .config import Config, RansacConfig
 from .filters import make_filter
 from .motion import TransferModel, transform_from_velocity
 from .ransac import BatchedMeasurement, ransac, reprojection_errors
@@ -77,6 +77,23 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
     prev_left, prev_right = correct(calib_prev, corr.prev_left, corr.prev_right)
     cur_left, cur_right = correct(calib_cur, corr.cur_left, corr.cur_right)
     return Correspondences(prev_left, prev_right, cur_left, cur_right, corr.ids, corr.ages)
+
+
+#: Median of |e| for a 2-D error e ~ N(0, s^2 I), in units of s (Rayleigh distribution).
+RAYLEIGH_MEDIAN = np.sqrt(2.0 * np.log(2.0))
+
+
+def adaptive_gate(inlier_errors: np.ndarray, cfg: RansacConfig) -> float:
+    """
+    Inlier threshold from the residual scale of a hypothesis (pixels).
+
+    ``sigma`` is the median of the inliers' Euclidean errors over the Rayleigh median (1.177
+    sigma); the threshold is ``cfg.adaptive_sigmas * sigma`` clipped to
+    [``cfg.min_inlier_threshold_px``, ``cfg.inlier_threshold_px``].
+    """
+    sigma = float(np.median(inlier_errors)) / RAYLEIGH_MEDIAN if len(inlier_errors) else np.inf
+    return float(np.clip(cfg.adaptive_sigmas * sigma, cfg.min_inlier_threshold_px,
+                         cfg.inlier_threshold_px))
 
 
 class MotionEstimator:
@@ -218,6 +235,11 @@ class MotionEstimator:
             res = ransac(model, z, prior_mean, prior_cov, self.filter, noise_var, cfg.ransac,
                          self.rng, scale)
             inl, hypotheses = res.inliers, res.hypotheses
+            gate = cfg.ransac.inlier_threshold_px
+            if cfg.ransac.adaptive_threshold and inl.sum() >= cfg.pipeline.min_inliers:
+                err = reprojection_errors(model, res.state[None], z, scale)[0]
+                gate = adaptive_gate(err[inl], cfg.ransac)
+                inl = err < gate
         if inl.sum() < cfg.pipeline.min_inliers:
             return self._fail(TrackingStatus.TOO_FEW_INLIERS, dt, used, hypotheses, 0,
                               f'{int(inl.sum())} inliers of {len(candidates)} (need '
@@ -236,7 +258,7 @@ class MotionEstimator:
         if cfg.ransac.enabled:
             # Report the inliers of the final estimate (what the motion explains).
             err = reprojection_errors(model, mean[None], z, scale)[0]
-            inl = err < cfg.ransac.inlier_threshold_px
+            inl = err < gate
         used[candidates[inl]] = True
         self.mean, self.cov = mean, cov
         return MotionEstimate(velocity=mean.copy(), covariance=cov.copy(),

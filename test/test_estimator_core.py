@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.errors import CalibrationError
-from stereo_vo_ros.estimator import COAST_VARIANCE_CAP, epipolar_corrected, MotionEstimator
+from stereo_vo_ros.estimator import adaptive_gate, COAST_VARIANCE_CAP, epipolar_corrected, \
+    MotionEstimator
 from stereo_vo_ros.filters import make_filter
 from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, TransferModel, \
     transform_from_velocity, velocity_from_transform
@@ -171,6 +172,47 @@ def test_ransac_recovers_motion_with_half_outliers(filter_type):
     # Without RANSAC the same data gives a visibly wrong motion.
     bad = MotionEstimator(cfg.replace(**{'ransac.enabled': False})).estimate(corr, calib, 0.1)
     assert np.abs(bad.velocity - y).max() > 2 * np.abs(res.velocity - y).max()
+
+
+def test_adaptive_gate_follows_the_residual_scale():
+    cfg = Config().ransac  # 4 sigma between 1 and 2 px
+    rng = np.random.default_rng(2)
+    for sigma, expected in ((0.1, 1.0), (0.4, 1.6), (1.0, 2.0)):
+        errors = np.linalg.norm(rng.normal(0, sigma, (20000, 2)), axis=1)
+        assert adaptive_gate(errors, cfg) == pytest.approx(expected, rel=0.03)
+    assert adaptive_gate(np.zeros(0), cfg) == cfg.inlier_threshold_px
+
+
+def test_adaptive_threshold_rejects_near_misses():
+    # Precise matches (0.1 px) and a quarter of the points off by 1.3-1.9 units of their error
+    # scale (pixels over the spread of the previous pair's noise through the transfer, the
+    # units of the RANSAC gate): a KLT window straddling an occlusion, an edge that slid.
+    # Inside the fixed 2 px gate they count as inliers; the threshold tightened to the
+    # residual scale (4 sigma, at least 1) leaves them out of the final update.
+    rng = np.random.default_rng(8)
+    calib = kitti_calibration()
+    y = np.array([0.1, 0.0, 10.0, 0.01, 0.02, 0.0])
+    pl, pr, cl, cr = observe(calib, random_scene(rng, 200), transform_from_velocity(y, 0.1))
+    cl = cl + rng.normal(0, 0.1, cl.shape)
+    cr = cr + rng.normal(0, 0.1, cr.shape)
+    gain = TransferModel(calib, pl, pr, 0.1).previous_noise_gain(np.zeros(6))  # the prior
+    scale = np.sqrt(1.0 + 0.5 * np.maximum(gain[:, 0] + gain[:, 1], gain[:, 2] + gain[:, 3]))
+    off = rng.random(200) < 0.25
+    angle = rng.uniform(0, 2 * np.pi, off.sum())
+    shift = (rng.uniform(1.3, 1.9, off.sum()) * scale[off])[:, None] * np.column_stack(
+        [np.cos(angle), np.sin(angle)])
+    cl[off] += shift  # the same feature mislocated in both images (on its epipolar line)
+    cr[off] += shift
+    corr = Correspondences(pl, pr, cl, cr)
+    base = {'bucketing.enabled': False}
+    fixed = MotionEstimator(Config().replace(**base, **{'ransac.adaptive_threshold': False}))
+    res_fixed = fixed.estimate(corr, calib, 0.1)
+    res = MotionEstimator(Config().replace(**base)).estimate(corr, calib, 0.1)
+    assert res.status is TrackingStatus.OK and res_fixed.status is TrackingStatus.OK
+    assert np.count_nonzero(res_fixed.inliers & off) > 0.75 * np.count_nonzero(off)
+    assert np.count_nonzero(res.inliers & off) < 0.1 * np.count_nonzero(off)
+    assert np.count_nonzero(res.inliers & ~off) > 0.95 * np.count_nonzero(~off)
+    assert np.abs(res.velocity - y).max() <= np.abs(res_fixed.velocity - y).max()
 
 
 @pytest.mark.parametrize('filter_type', ['ispkf', 'iekf'])
