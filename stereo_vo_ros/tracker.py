@@ -298,25 +298,20 @@ def _bucket_ids(points: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
     return idx[idx >= 0]
 
 
-def _far_from(points: np.ndarray, origin: tuple[int, int], shape: tuple[int, int],
-              radius: float) -> np.ndarray | None:
+def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float) -> np.ndarray:
     """
-    (H, W) bool: pixels of a window farther than ``radius`` from every point, or None.
+    (H, W) uint8 mask: 255 on pixels at least ``radius`` from every point, 0 near them.
 
-    ``origin`` is the (x, y) pixel of the window's top-left corner, ``shape`` its (H, W).
+    Filled discs drawn with OpenCV (a distance transform of the whole image costs ten times
+    more); the disc radius is rounded up, so the mask errs on the side of keeping away.
     """
+    free = np.full(shape, 255, np.uint8)
     r = int(math.ceil(radius))
-    ox, oy = origin
-    hh, ww = shape
-    rel = np.round(points - np.array([ox - r, oy - r])).astype(np.int64)
-    inside = (rel[:, 0] >= 0) & (rel[:, 1] >= 0) & (rel[:, 0] < ww + 2 * r) & \
-        (rel[:, 1] < hh + 2 * r)
-    if not inside.any():
-        return None
-    canvas = np.full((hh + 2 * r, ww + 2 * r), 255, np.uint8)
-    canvas[rel[inside, 1], rel[inside, 0]] = 0
-    dist = cv2.distanceTransform(canvas, cv2.DIST_L2, 3)
-    return dist[r:r + hh, r:r + ww] >= radius
+    h, w = shape
+    for x, y in np.round(points).astype(np.int64):
+        if -r <= x < w + r and -r <= y < h + r:
+            cv2.circle(free, (int(x), int(y)), r, 0, -1)
+    return free
 
 
 def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: TrackerConfig,
@@ -362,16 +357,15 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
     if bcfg.enabled and chosen is None:
         chosen = plan_detection(existing, need, (w, h), bcfg)
     pad = cfg.block_size // 2 + 2
+    free = _free_mask(existing, (h, w), cfg.min_distance_px) if len(existing) else None
     found, ranks = [], []
     for (x0, y0, x1, y1), count in zip(*_regions(chosen, (w, h), bcfg)):
         cx0, cy0 = max(x0 - pad, 0), max(y0 - pad, 0)
         cx1, cy1 = min(x1 + pad, w), min(y1 + pad, h)
         mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
         mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
-        if len(existing):
-            far = _far_from(existing, (cx0, cy0), mask.shape, cfg.min_distance_px)
-            if far is not None:
-                mask[~far] = 0
+        if free is not None:
+            mask &= free[cy0:cy1, cx0:cx1]
         limit = need if not bcfg.enabled else 2 * count * bcfg.max_per_bucket
         corners = cv2.goodFeaturesToTrack(
             img[cy0:cy1, cx0:cx1], maxCorners=int(limit), qualityLevel=cfg.quality_level,
