@@ -159,11 +159,15 @@ def main() -> int:
     parser.add_argument('--latency-pairs', type=int, default=60)
     parser.add_argument('--rates', type=float, nargs='+', default=[10, 15, 20, 30, 40, 60])
     parser.add_argument('--seconds', type=float, default=4.0)
+    parser.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='extra node parameter (repeatable), e.g. '
+                        'tracker.affine_refinement:=false')
     args = parser.parse_args()
 
     left, right, P0, P1, period = load_frames(args.data, args.frames)
     env = with_pythonpath(dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID)), REPO_ROOT)
-    proc = start_node(['-p', 'ros.qos:=reliable', '--log-level', 'error'], env=env)
+    extra = [arg for p in args.param for arg in ('-p', p)]
+    proc = start_node(['-p', 'ros.qos:=reliable', *extra, '--log-level', 'error'], env=env)
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
     bench = Bench(context, left, right, P0, P1, period)

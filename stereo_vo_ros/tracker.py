@@ -451,6 +451,7 @@ class StereoTracker:
         """Forget every feature and the previous images; the next pair re-initialises."""
         self._calib: StereoCalibration | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        self._floats: list[tuple[np.ndarray, np.ndarray]] = []
         self._feats = _Features.empty()
         self._bits = 8
         self._barren: np.ndarray | None = None  # (rows, cols) frames to skip each bucket
@@ -492,6 +493,10 @@ class StereoTracker:
 
         """
         t_start = CLOCK()
+        # float32 images of the refinement: only the previous pair's (owned by the tracker, never
+        # written) carry over; the caller may reuse its buffers for the next pair.
+        self._floats = [(src, conv) for src, conv in self._floats
+                        if self._prev is not None and any(src is p for p in self._prev)]
         left8, self._bits = _as_grey_u8(left, 'left', self._bits)
         right8, self._bits = _as_grey_u8(right, 'right', self._bits)
         if left8.shape != right8.shape:
@@ -669,6 +674,15 @@ class StereoTracker:
         self._feats = _Features(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
         return corr, raw
 
+    def _float(self, img: np.ndarray) -> np.ndarray:
+        """float32 copy of a uint8 image, converted once per frame (the refinement samples it)."""
+        for src, converted in self._floats:
+            if src is img:
+                return converted
+        converted = img.astype(np.float32)
+        self._floats = (self._floats + [(img, converted)])[-3:]
+        return converted
+
     def _refine(self, img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
                 pts_to: np.ndarray, stats: TrackerStats, stereo: bool = False) -> np.ndarray:
         """Affine refinement of matches (raw pixels) when configured, timed as ``affine``."""
@@ -677,8 +691,9 @@ class StereoTracker:
             return pts_to
         t = CLOCK()
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
-        out, _ = refine_affine(img_from, img_to, pts_from, pts_to, cfg.affine_win_size_px,
-                               cfg.affine_iterations, horizontal=horizontal)
+        out, _ = refine_affine(self._float(img_from), self._float(img_to), pts_from, pts_to,
+                               cfg.affine_win_size_px, cfg.affine_iterations,
+                               horizontal=horizontal)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 
