@@ -14,6 +14,9 @@ once: the window of the first image (the template) is fixed; the second image is
 ``c + A x`` for the window offsets ``x`` with one ``cv2.remap`` call, and the centre ``c`` and
 the 2x2 matrix ``A`` are updated. Brightness is compared after removing each window's mean and
 scaling it to the template's contrast, so exposure changes do not move the estimate.
+``cv2.remap`` interpolates with weights quantised to 1/32 pixel; on the urban render the error
+statistics above were the same as with a float64 bilinear sampler written in NumPy, which took
+twice as long.
 
 A point whose refinement leaves the plausible range (centre moved more than ``max_shift_px``,
 ``A`` far from a similarity of scale 0.5-2, windows that do not correlate, non-finite) keeps
@@ -52,7 +55,7 @@ def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
-                  pts_to: np.ndarray, win_size_px: int = 15, iterations: int = 3,
+                  pts_to: np.ndarray, win_size_px: int = 21, iterations: int = 3,
                   max_shift_px: float = MAX_SHIFT_PX, horizontal: bool = False
                   ) -> tuple[np.ndarray, np.ndarray]:
     """
