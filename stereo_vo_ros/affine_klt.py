@@ -16,7 +16,7 @@ the 2x2 matrix ``A`` are updated. Brightness is compared after removing each win
 scaling it to the template's contrast, so exposure changes do not move the estimate.
 ``cv2.remap`` interpolates with weights quantised to 1/32 pixel; on the urban render the error
 statistics above were the same as with a float64 bilinear sampler written in NumPy, which took
-twice as long.
+1.5 times as long (whole refinement).
 
 A point whose refinement leaves the plausible range (centre moved more than ``max_shift_px``,
 ``A`` far from a similarity of scale 0.5-2, windows that do not correlate, non-finite) keeps
