@@ -73,6 +73,10 @@ class TrackerConfig:
         'right).', dynamic=True)
     affine_win_size_px: int = _f(
         21, 'Window side of the affine refinement (pixels, odd).', 5, 61, dynamic=True)
+    affine_step_px: int = _f(
+        2, 'The affine refinement uses every n-th pixel of its window in both directions (1: '
+        'all; 2 halves its cost with the same accuracy within the spread between scenes).',
+        1, 10, dynamic=True)
     affine_iterations: int = _f(
         3, 'Gauss-Newton steps of the affine refinement.', 1, 50, dynamic=True)
     variant: str = _f(

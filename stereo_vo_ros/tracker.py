@@ -693,7 +693,7 @@ class StereoTracker:
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
         out, _ = refine_affine(self._float(img_from), self._float(img_to), pts_from, pts_to,
                                cfg.affine_win_size_px, cfg.affine_iterations,
-                               horizontal=horizontal)
+                               horizontal=horizontal, step_px=cfg.affine_step_px)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 

@@ -66,6 +66,10 @@ def test_refinement_recovers_deformed_windows_better_than_translation_klt(M):
     assert np.median(err_ref) < 0.03
     assert np.median(err_ref) < 0.5 * np.median(err_klt)
     assert refined.dtype == np.float64
+    # Every second pixel of a 21-pixel window (the default) does as well.
+    sparse, ok = refine_affine(img0, img1, pts, klt, win_size_px=21, iterations=5, step_px=2)
+    assert ok.all()
+    assert np.median(np.linalg.norm(sparse - true, axis=1)) < 0.03
 
 
 def test_horizontal_mode_fixes_the_row_and_fits_a_disparity_plane():
