@@ -39,12 +39,10 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stereo_vo_ros.ros import conversions as conv  # noqa: E402
+from stereo_vo_ros.ros.player import StereoPairPublisher  # noqa: E402
 from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # noqa: E402
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec  # noqa: E402
 
@@ -65,14 +63,8 @@ class Feeder(Node):
 
     def __init__(self, context: Context, frames, P0, P1) -> None:
         super().__init__('bench_long_run', context=context)
-        qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        self.pubs = {name: self.create_publisher(Image if 'image' in name else CameraInfo,
-                                                 name, qos)
-                     for name in ('left/image_rect', 'right/image_rect', 'left/camera_info',
-                                  'right/camera_info')}
         h, w = frames[0].left.shape
-        self.infos = (conv.camera_info_from_matrices(P0, w, h, frame_id='camera_left'),
-                      conv.camera_info_from_matrices(P1, w, h, frame_id='camera_right'))
+        self.pairs = StereoPairPublisher(self, P0, P1, (w, h))
         self.frames = frames
         self.order = list(range(len(frames))) + list(range(len(frames) - 2, 0, -1))
         self.odom_count = 0
@@ -106,14 +98,7 @@ class Feeder(Node):
     def send(self, k: int) -> None:
         """Publish pair ``k`` (camera_info first)."""
         f = self.frames[self.order[k % len(self.order)]]
-        stamp = conv.time_from_nanoseconds(1_000_000_000 + k * 100_000_000)
-        for info, name in zip(self.infos, ('left/camera_info', 'right/camera_info')):
-            info.header.stamp = stamp
-            self.pubs[name].publish(info)
-        self.pubs['left/image_rect'].publish(
-            conv.image_from_numpy(f.left, 'mono8', stamp, 'camera_left'))
-        self.pubs['right/image_rect'].publish(
-            conv.image_from_numpy(f.right, 'mono8', stamp, 'camera_right'))
+        self.pairs.publish(f.left, f.right, 1_000_000_000 + k * 100_000_000)
 
     def wait_odometry(self, count: int, timeout_s: float) -> bool:
         """Wait until ``count`` odometry messages arrived (False on timeout)."""
@@ -157,7 +142,7 @@ def main() -> int:
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (
-                all(p.get_subscription_count() for p in feeder.pubs.values()) and
+                feeder.pairs.connected() and
                 feeder.count_publishers('/odom') and feeder.count_publishers('/path')):
             time.sleep(0.05)
         time.sleep(1.0)

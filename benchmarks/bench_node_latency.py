@@ -43,12 +43,11 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros.ros import conversions as conv  # noqa: E402
+from stereo_vo_ros.ros.player import StereoPairPublisher  # noqa: E402
 from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -85,14 +84,8 @@ class Bench(Node):
 
     def __init__(self, context: Context, left, right, P0, P1, period_s: float) -> None:
         super().__init__('bench_node_latency', context=context)
-        qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        self.pubs = {name: self.create_publisher(Image if 'image' in name else CameraInfo,
-                                                 name, qos)
-                     for name in ('left/image_rect', 'right/image_rect', 'left/camera_info',
-                                  'right/camera_info')}
         h, w = left[0].shape
-        self.infos = (conv.camera_info_from_matrices(P0, w, h, frame_id='camera_left'),
-                      conv.camera_info_from_matrices(P1, w, h, frame_id='camera_right'))
+        self.pairs = StereoPairPublisher(self, P0, P1, (w, h))
         self.left, self.right, self.period_ns = left, right, int(period_s * 1e9)
         order = list(range(len(left))) + list(range(len(left) - 2, 0, -1))
         self.order = order
@@ -121,15 +114,7 @@ class Bench(Node):
         i = self.order[self.k % len(self.order)]
         self.k += 1
         self.stamp_ns += self.period_ns
-        stamp = conv.time_from_nanoseconds(self.stamp_ns)
-        left = conv.image_from_numpy(self.left[i], 'mono8', stamp, 'camera_left')
-        right = conv.image_from_numpy(self.right[i], 'mono8', stamp, 'camera_right')
-        for info, name in zip(self.infos, ('left/camera_info', 'right/camera_info')):
-            info.header.stamp = stamp
-            self.pubs[name].publish(info)
-        t = time.perf_counter()
-        self.pubs['left/image_rect'].publish(left)
-        self.pubs['right/image_rect'].publish(right)
+        t = self.pairs.publish(self.left[i], self.right[i], self.stamp_ns)
         with self.lock:
             self.sent[self.stamp_ns] = t
         return self.stamp_ns
@@ -178,7 +163,7 @@ def main() -> int:
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (
-                all(p.get_subscription_count() for p in bench.pubs.values()) and
+                bench.pairs.connected() and
                 bench.count_publishers('/odom')):
             time.sleep(0.05)
         time.sleep(1.0)

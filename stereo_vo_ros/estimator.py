@@ -237,9 +237,8 @@ class MotionEstimator:
             inl, hypotheses = res.inliers, res.hypotheses
             gate = cfg.ransac.inlier_threshold_px
             if cfg.ransac.adaptive_threshold and inl.sum() >= cfg.pipeline.min_inliers:
-                err = reprojection_errors(model, res.state[None], z, scale)[0]
-                gate = adaptive_gate(err[inl], cfg.ransac)
-                inl = err < gate
+                gate = adaptive_gate(res.errors[inl], cfg.ransac)
+                inl = res.errors < gate
         if inl.sum() < cfg.pipeline.min_inliers:
             return self._fail(TrackingStatus.TOO_FEW_INLIERS, dt, used, hypotheses, 0,
                               f'{int(inl.sum())} inliers of {len(candidates)} (need '

@@ -104,12 +104,14 @@ class RansacResult:
     inliers : (N,) bool inliers of the best hypothesis.
     state : (6,) best hypothesis (m/s, rad/s).
     hypotheses : int samples drawn.
+    errors : (N,) scaled reprojection error of every point under the best hypothesis (pixels).
 
     """
 
     inliers: np.ndarray
     state: np.ndarray
     hypotheses: int
+    errors: np.ndarray
 
 
 def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_cov: np.ndarray,
@@ -158,4 +160,5 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
     count = inl.sum(axis=1)
     score = np.where(inl, err, 0.0).sum(axis=1)
     best = int(np.lexsort((score, -count))[0])
-    return RansacResult(inliers=inl[best], state=out.mean[best], hypotheses=n_hyp)
+    return RansacResult(inliers=inl[best], state=out.mean[best], hypotheses=n_hyp,
+                        errors=err[best])

@@ -10,6 +10,9 @@ message and, between messages, at ``clock_hz``. The rate factor scales the repla
 
 Used by the node tests, the latency benchmark and ``stereo_vo demo``; it owns no node and no
 executor: publishing needs no spinning, so ``play`` simply blocks the calling thread.
+
+``StereoPairPublisher`` publishes in-memory stereo pairs (camera_info first, then the images) on
+the node's input topics; the node benchmarks feed it.
 """
 
 from __future__ import annotations
@@ -26,9 +29,61 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image
 
-from .conversions import time_from_nanoseconds
+from .conversions import camera_info_from_matrices, image_from_numpy, time_from_nanoseconds
 from ..errors import DatasetError
+
+
+class StereoPairPublisher:
+    """
+    Publish stereo pairs on the node's input topics (relative names, reliable QoS).
+
+    Parameters
+    ----------
+    node : Node
+        The node that owns the publishers.
+    P0, P1 : np.ndarray
+        (3, 4) rectified projection matrices of the left and right camera (pixels).
+    size : tuple of int
+        (width, height) of the images.
+    depth : int
+        History depth of the publishers.
+
+    """
+
+    INFO_TOPICS = ('left/camera_info', 'right/camera_info')
+    IMAGE_TOPICS = ('left/image_rect', 'right/image_rect')
+
+    def __init__(self, node: Node, P0: Any, P1: Any, size: tuple[int, int],
+                 depth: int = 5) -> None:
+        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        self._infos = [node.create_publisher(CameraInfo, t, qos) for t in self.INFO_TOPICS]
+        self._images = [node.create_publisher(Image, t, qos) for t in self.IMAGE_TOPICS]
+        w, h = size
+        self._info_msgs = (camera_info_from_matrices(P0, w, h, frame_id='camera_left'),
+                           camera_info_from_matrices(P1, w, h, frame_id='camera_right'))
+
+    def connected(self) -> bool:
+        """Return True once every input topic has a subscriber (the node is listening)."""
+        return all(p.get_subscription_count() for p in self._infos + self._images)
+
+    def publish(self, left: Any, right: Any, stamp_ns: int) -> float:
+        """
+        Publish the camera_info pair, then the mono8 images, all stamped ``stamp_ns``.
+
+        Returns the ``time.perf_counter()`` reading taken just before the images go out.
+        """
+        stamp = time_from_nanoseconds(stamp_ns)
+        images = (image_from_numpy(left, 'mono8', stamp, 'camera_left'),
+                  image_from_numpy(right, 'mono8', stamp, 'camera_right'))
+        for pub, info in zip(self._infos, self._info_msgs):
+            info.header.stamp = stamp
+            pub.publish(info)
+        t = time.perf_counter()
+        for pub, image in zip(self._images, images):
+            pub.publish(image)
+        return t
 
 
 def message_class(msgtype: str) -> type:
