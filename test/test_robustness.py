@@ -628,8 +628,8 @@ def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(mak
         assert rig.h.wait_for(lambda: sub.get_publisher_count() >= 1, 10.0)
         order = list(range(15, N_FRAMES)) + list(range(N_FRAMES - 2, 0, -1))  # ping-pong
         start = time.perf_counter()
-        # 5 s: with 3 s the GIL-sharing publisher let the node finish only the first and the
-        # last pair in 2 of the 4 full runs of 2026-11-23 (processing about 18 ms a pair).
+        # 5 s: with 3 s (and a polling publisher, see below) the node finished only the first
+        # and the last pair in 2 of the 4 full runs of 2026-11-23 (about 18 ms a pair).
         duration_s = 5.0
         k = 0
         while time.perf_counter() - start < duration_s:
@@ -637,9 +637,9 @@ def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(mak
             ns = rig.stamp(15) + k * 100_000_000
             rig.send(rig.frames[i].left, rig.frames[i].right, ns)
             k += 1
-            next_t = start + k / rate_hz
-            while time.perf_counter() < next_t:
-                time.sleep(0.0005)
+            # One sleep to the next send time: polling with short sleeps woke this thread
+            # ~2000 times a second, and every wake-up took the GIL from the node's worker.
+            time.sleep(max(0.0, start + k / rate_hz - time.perf_counter()))
         flood_end, last_ns = time.perf_counter(), ns
         # Newest wins: the last pair comes out, and only a handful after the flood (what the
         # DDS readers and the pairing still hold), not a backlog of the k pairs sent. The time
