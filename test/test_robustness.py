@@ -511,8 +511,8 @@ def test_large_gap_reinitialises_the_velocity_and_goes_on(make_rig):
     gap_ns = 30 * 1_000_000_000
     rig.good_run([5], offset_ns=gap_ns)
     problem = 'gap of 30.100 s: velocity re-initialised'
+    rig.assert_diagnosed(problem, DiagnosticStatus.WARN)  # first: the WARN holds 5 s
     rig.assert_logged(problem, WARN)
-    rig.assert_diagnosed(problem, DiagnosticStatus.WARN)
     cov = np.array(rig.odom.last.pose.covariance).reshape(6, 6)
     assert cov[0, 0] > 1.0  # 30 s without a velocity: the position is very uncertain
     rig.recover(6, offset_ns=gap_ns)
@@ -529,12 +529,15 @@ def test_stamps_jumping_back_restart_the_odometry_cleanly(make_rig):
         rig.camera_info()
         rig.good_run(range(15))
         first = list(rig.odom.messages)
-        rig.good_run(range(10))  # back to the first stamp: 1.4 s earlier
+        rig.good_run([0])  # back to the first stamp: 1.4 s earlier
+        # Checked at once: the warning holds the diagnostics at WARN for WARN_HOLD_S (5 s) of
+        # wall time, which nine more frames took on a loaded CI machine (2026-11-23).
+        rig.assert_diagnosed('restart', DiagnosticStatus.WARN)
+        rig.good_run(range(1, 10))
         second = list(rig.odom.messages)[15:]
         for text in ('is 1.400 s before the previous one: the input restarted (looping bag?)',
                      'stamp jumped back 1.400 s: restarting odometry'):
             rig.assert_logged(text, WARN)
-        rig.assert_diagnosed('restart', DiagnosticStatus.WARN)
         assert rig.count('restarts') == 1
         assert stamp_ns(second[0]) == rig.stamp(0)
         assert np.linalg.norm(_position(second[0])) < 1e-9
@@ -560,8 +563,8 @@ def test_left_and_right_never_within_the_slop(make_rig, sync, offset_ms, rule):
         rig.send(f.left, f.right, rig.stamp(i), rig.stamp(i) + offset_ms * 1_000_000)
     rig.wait_count('unsynchronized_inputs', 3)
     problem = f'dropped without a partner: left and right stamps are not {rule}'
+    rig.assert_diagnosed(problem, DiagnosticStatus.WARN)  # first: the WARN holds 5 s
     rig.assert_logged(problem, WARN)
-    rig.assert_diagnosed(problem, DiagnosticStatus.WARN)
     assert rig.diag().message.startswith('no synchronized stereo pair received yet')
     assert rig.count('pairs_received') == 0 and rig.odom.count == 0
     rig.recover(5)
@@ -593,8 +596,8 @@ def test_absurd_set_pose_never_publishes_non_finite_odometry(make_rig):
     finally:
         rig.h.destroy(pub)
     problem = 'not published; the odometry restarts at the identity with the next pair'
+    rig.assert_diagnosed(problem, DiagnosticStatus.ERROR)  # first: the ERROR holds 5 s
     rig.assert_logged(problem, ERROR)
-    rig.assert_diagnosed(problem, DiagnosticStatus.ERROR)
     rig.good_run(range(5, 8))
     assert np.linalg.norm(_position(rig.odom.last)) < 5.0
     assert rig.count('resets') == 1
