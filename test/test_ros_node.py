@@ -13,6 +13,7 @@ from pathlib import Path
 import py_compile
 import tempfile
 import time
+from xml.etree import ElementTree
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -117,10 +118,10 @@ def harness():
 
 
 @contextlib.contextmanager
-def node_process(*ros_args: str):
+def node_process(*ros_args: str, env_extra: dict | None = None):
     """Run the node as a separate process; yields a dict that receives its output."""
-    env = with_pythonpath(dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1'),
-                          REPO_ROOT)
+    env = with_pythonpath(dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), PYTHONUNBUFFERED='1',
+                               **(env_extra or {})), REPO_ROOT)
     result = {'output': '', 'returncode': None}
     with tempfile.TemporaryFile('w+') as log:
         with node_subprocess(ros_args, env=env, stdout=log, text=True) as proc:
@@ -291,6 +292,38 @@ def test_node_process_remapping_exact_sync_and_sensor_qos(sequence, bag):
         assert len(h.odom) >= 8, proc['output']
         _check_odometry(h.odom, frames)
         assert 'exact sync, sensor_data QoS' in proc['output']
+    finally:
+        h.close()
+
+
+def test_fastdds_large_images_profile_is_valid_and_carries_pairs(sequence, bag):
+    """The shipped Fast DDS profile: parsed without error, talks to a default participant."""
+    _, frames = sequence
+    profile = REPO_ROOT / 'config' / 'fastdds_large_images.xml'
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ElementTree.parse(profile).getroot()
+    kinds = {d.findtext('p:transport_id', namespaces=ns): d.findtext('p:type', namespaces=ns)
+             for d in root.iterfind('p:transport_descriptors/p:transport_descriptor', ns)}
+    assert sorted(kinds.values()) == ['SHM', 'UDPv4']  # other hosts still reachable
+    segment = int(root.findtext('.//p:segment_size', namespaces=ns))
+    assert segment >= 4 * 2 * 1241 * 376  # a few KITTI-size mono8 pairs in flight
+    participant = root.find('p:participant', ns)
+    assert participant.get('is_default_profile') == 'true'
+    used = [t.text for t in participant.iterfind('p:rtps/p:userTransports/p:transport_id', ns)]
+    assert sorted(used) == sorted(kinds)
+    # The node with the profile; the test's participant (the bag player) with the defaults.
+    h = Harness()
+    try:
+        player = BagPlayer(h.node, bag, topics=IMAGE_TOPICS + INFO_TOPICS, rate=1.0)
+        with node_process('-p', 'use_sim_time:=true', '-p', 'ros.qos:=reliable',
+                          env_extra={'FASTRTPS_DEFAULT_PROFILES_FILE': str(profile)}) as proc:
+            _wait_for_node(h, player)
+            _paced_play(h, player, stop_ns=int(round(frames[10].stamp_s * 1e9)))
+            h.settle(10)
+        assert proc['returncode'] == 0, proc['output']
+        assert ' Error]' not in proc['output'], proc['output']  # Fast DDS: [XMLPARSER Error]
+        assert len(h.odom) == 10, proc['output']
+        _check_odometry(h.odom, frames)
     finally:
         h.close()
 
