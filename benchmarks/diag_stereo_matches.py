@@ -88,7 +88,7 @@ def main() -> int:
         pair = renderer.render(i, depth=i >= args.first)
         res = vo.process(pair.stereo_frame(calib))
         poses.append(res.T_world_cam)
-        if i < args.first or res.features is None or res.inliers is None:
+        if i < max(args.first, 1) or res.features is None or res.inliers is None:
             continue
         c = res.features
         px = np.clip(np.rint(c.cur_left).astype(int), 0, [spec.width - 1, spec.height - 1])
