@@ -551,6 +551,26 @@ def test_stamps_jumping_back_restart_the_odometry_cleanly(make_rig):
     rig.assert_healthy()
 
 
+def test_images_of_a_pair_arriving_apart_are_measured_and_explained(make_rig):
+    """The right image 20 ms after the left one: the gap is reported, with the likely cause."""
+    rig = make_rig()
+    rig.camera_info()
+    order = list(range(N_FRAMES)) + list(range(N_FRAMES - 2, 0, -1))
+    for k in range(35):  # more than the 30 pairs of the median
+        f = rig.frames[order[k]]
+        ns = rig.stamp(0) + k * 100_000_000
+        before = rig.odom.count
+        rig.pubs['left/image_rect'].publish(rig.image(f.left, ns))
+        time.sleep(0.02)
+        rig.pubs['right/image_rect'].publish(rig.image(f.right, ns))
+        assert rig.odom.wait_count(before + 1, 10.0), rig.status()
+    assert float(rig.value('pair_arrival_gap_ms')) >= 15.0, rig.status()
+    rig.assert_logged('the two images of a pair arrive', Log.INFO)
+    rig.assert_logged('fastdds_large_images.xml', Log.INFO)
+    assert rig.value('tracking_state') == 'ok'
+    rig.assert_healthy()
+
+
 @pytest.mark.parametrize('sync, offset_ms, rule', [
     ('approximate', 20, 'within 0.005 s (approximate sync)'),
     ('exact', 1, 'equal (exact sync)'),

@@ -87,6 +87,12 @@ SYNC_QUEUE_SIZE = 10
 ERROR_HOLD_S = 5.0
 #: Seconds (wall) during which the last warning keeps the diagnostics at least at WARN.
 WARN_HOLD_S = 5.0
+#: Mean gap (ms) between the arrivals of the two images of a pair above which the node points
+#: at the image transport once. Fast DDS: two large images overflow its default shared-memory
+#: segment, and the first of a pair arrives about 10 ms late, for about half of the pairs.
+PAIR_GAP_HINT_MS = 5.0
+#: Pairs over which that mean is taken.
+PAIR_GAP_WINDOW = 30
 #: Seconds (wall) without a pair after which the diagnostics report stale input.
 STALE_INPUT_S = 3.0
 #: Seconds between repetitions of a throttled log line (per problem, not per call site).
@@ -202,6 +208,9 @@ class StereoVONode(Node):
         self._path: collections.deque = collections.deque(maxlen=cfg.path_max_length)
         self._counts = collections.Counter()
         self._arrivals: collections.deque = collections.deque(maxlen=30)
+        # Arrival (monotonic s) of the latest images by (side, stamp), until they are paired.
+        self._image_arrival: collections.OrderedDict = collections.OrderedDict()
+        self._pair_gaps_ms: collections.deque = collections.deque(maxlen=PAIR_GAP_WINDOW)
         self._last_pair_wall: float | None = None
         self._last_error = ''
         self._last_error_wall = -np.inf
@@ -378,7 +387,11 @@ class StereoVONode(Node):
 
     def _on_image(self, side: str, msg: Image) -> None:
         stamp_ns = conv.nanoseconds_from_time(msg.header.stamp)
+        arrived = time.monotonic()
         with self._sync_lock:
+            self._image_arrival[(side, stamp_ns)] = arrived
+            while len(self._image_arrival) > 4 * PAIR_GAP_WINDOW:
+                self._image_arrival.popitem(last=False)
             stats = self._sync.stats
             before = (stats.restarts, stats.late[side], sum(stats.unmatched.values()))
             previous = self._sync.newest(side)
@@ -403,7 +416,28 @@ class StereoVONode(Node):
             self._warn(f'{after[2] - before[2]} image(s) dropped without a partner: left and '
                        f'right stamps are not {rule}; newest {stamps}', key='sync-unmatched')
         for pair in pairs:
+            self._note_arrival_gap(pair)
             self._on_pair(pair)
+
+    def _note_arrival_gap(self, pair: StereoPair) -> None:
+        """Record how far apart the two images of a pair arrived; point at the cause once."""
+        with self._sync_lock:
+            t_left = self._image_arrival.pop(('left', pair.stamp_ns), None)
+            t_right = self._image_arrival.pop(('right', pair.right_stamp_ns), None)
+        if t_left is None or t_right is None:
+            return
+        self._pair_gaps_ms.append(abs(t_left - t_right) * 1e3)
+        if len(self._pair_gaps_ms) == PAIR_GAP_WINDOW and 'pair-gap' not in self._warned:
+            gap = float(np.mean(self._pair_gaps_ms))
+            if gap > PAIR_GAP_HINT_MS:
+                self._warned.add('pair-gap')
+                self.get_logger().info(
+                    f'the two images of a pair arrive {gap:.1f} ms apart (mean of '
+                    f'{PAIR_GAP_WINDOW} pairs), and each pair waits for the later one. If the '
+                    'images come over Fast DDS, its default 512 kB shared-memory segment is too '
+                    'small for two of them: start the image publisher with '
+                    'FASTRTPS_DEFAULT_PROFILES_FILE=<share>/stereo_vo_ros/config/'
+                    'fastdds_large_images.xml (docs/ros_interface.md)')
 
     def _on_synced_messages(self, left: Image, right: Image) -> None:  # pragma: no cover
         self._on_pair(StereoPair(conv.nanoseconds_from_time(left.header.stamp),
@@ -716,6 +750,8 @@ class StereoVONode(Node):
             else float('nan'),
             'latency_ms': self._last_latency_ms,
             'input_rate_hz': rate,
+            'pair_arrival_gap_ms': float(np.mean(self._pair_gaps_ms)) if self._pair_gaps_ms
+            else float('nan'),
             'pairs_received': self._counts['pairs'],
             'pairs_processed': self._counts['processed'],
             'dropped_pairs': self._counts['dropped'],
