@@ -54,6 +54,16 @@ def test_approximate_picks_the_nearest_queued_partner():
     assert sync.queued('right') == 1
 
 
+def test_pairs_carry_the_time_between_their_arrivals():
+    now = [10.0]
+    sync = StereoSynchronizer('exact', clock=lambda: now[0])
+    assert sync.add_right(5, 'r') == []
+    now[0] = 10.012
+    (pair,) = sync.add_left(5, 'l')
+    assert (pair.left, pair.right) == ('l', 'r')
+    assert pair.arrival_gap_s == pytest.approx(0.012)
+
+
 def test_late_and_duplicate_stamps():
     sync = StereoSynchronizer('exact')
     _feed(sync, [('left', 100 * MS), ('right', 100 * MS)])

@@ -208,8 +208,6 @@ class StereoVONode(Node):
         self._path: collections.deque = collections.deque(maxlen=cfg.path_max_length)
         self._counts = collections.Counter()
         self._arrivals: collections.deque = collections.deque(maxlen=30)
-        # Arrival (monotonic s) of the latest images by (side, stamp), until they are paired.
-        self._image_arrival: collections.OrderedDict = collections.OrderedDict()
         self._pair_gaps_ms: collections.deque = collections.deque(maxlen=PAIR_GAP_WINDOW)
         self._last_pair_wall: float | None = None
         self._last_error = ''
@@ -387,11 +385,7 @@ class StereoVONode(Node):
 
     def _on_image(self, side: str, msg: Image) -> None:
         stamp_ns = conv.nanoseconds_from_time(msg.header.stamp)
-        arrived = time.monotonic()
         with self._sync_lock:
-            self._image_arrival[(side, stamp_ns)] = arrived
-            while len(self._image_arrival) > 4 * PAIR_GAP_WINDOW:
-                self._image_arrival.popitem(last=False)
             stats = self._sync.stats
             before = (stats.restarts, stats.late[side], sum(stats.unmatched.values()))
             previous = self._sync.newest(side)
@@ -421,12 +415,7 @@ class StereoVONode(Node):
 
     def _note_arrival_gap(self, pair: StereoPair) -> None:
         """Record how far apart the two images of a pair arrived; point at the cause once."""
-        with self._sync_lock:
-            t_left = self._image_arrival.pop(('left', pair.stamp_ns), None)
-            t_right = self._image_arrival.pop(('right', pair.right_stamp_ns), None)
-        if t_left is None or t_right is None:
-            return
-        self._pair_gaps_ms.append(abs(t_left - t_right) * 1e3)
+        self._pair_gaps_ms.append(pair.arrival_gap_s * 1e3)
         if len(self._pair_gaps_ms) == PAIR_GAP_WINDOW and 'pair-gap' not in self._warned:
             gap = float(np.mean(self._pair_gaps_ms))
             if gap > PAIR_GAP_HINT_MS:

@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+import time
+from typing import Any, Callable, Generic, TypeVar
 
 T = TypeVar('T')
 
@@ -45,6 +46,9 @@ class StereoPair(Generic[T]):
         Stamp of the right message (ns).
     left, right
         The paired items (e.g. Image messages).
+    arrival_gap_s : float
+        Time between the arrivals of the two items (s, the synchroniser's clock); 0 when
+        unknown.
 
     """
 
@@ -52,6 +56,7 @@ class StereoPair(Generic[T]):
     right_stamp_ns: int
     left: T
     right: T
+    arrival_gap_s: float = 0.0
 
 
 @dataclass
@@ -100,11 +105,14 @@ class StereoSynchronizer(Generic[T]):
         Messages kept per side while waiting for a partner, >= 1.
     restart_jump_s : float
         A stamp this much (s) before the newest one of its side restarts the pairing, > 0.
+    clock : callable
+        Time of arrival of a message (s), for ``StereoPair.arrival_gap_s``.
 
     """
 
     def __init__(self, mode: str = 'approximate', slop_s: float = 0.005,
-                 queue_size: int = 10, restart_jump_s: float = 1.0) -> None:
+                 queue_size: int = 10, restart_jump_s: float = 1.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         if mode not in ('exact', 'approximate'):
             raise ValueError(f"sync mode must be 'exact' or 'approximate', got {mode!r}")
         if not slop_s >= 0.0:
@@ -117,12 +125,13 @@ class StereoSynchronizer(Generic[T]):
         self.restart_ns = int(round(restart_jump_s * 1e9))
         self.slop_ns = 0 if mode == 'exact' else int(round(slop_s * 1e9))
         self.queue_size = int(queue_size)
+        self.clock = clock
         self.reset()
 
     def reset(self) -> None:
         """Forget the queued messages, the last pair and the counters."""
         self._stamps: dict[str, list[int]] = {s: [] for s in SIDES}
-        self._items: dict[str, list[Any]] = {s: [] for s in SIDES}
+        self._items: dict[str, list[tuple[Any, float]]] = {s: [] for s in SIDES}  # (item, arrival)
         self._last_paired: dict[str, int | None] = dict.fromkeys(SIDES)
         self._newest: dict[str, int | None] = dict.fromkeys(SIDES)
         self.stats = SyncStats()
@@ -165,13 +174,14 @@ class StereoSynchronizer(Generic[T]):
             self.stats.late[side] += 1
             return []
         stamps, items = self._stamps[side], self._items[side]
+        entry = (item, self.clock())
         i = bisect.bisect_left(stamps, stamp_ns)
         if i < len(stamps) and stamps[i] == stamp_ns:
-            items[i] = item
+            items[i] = entry
             self.stats.duplicates[side] += 1
         else:
             stamps.insert(i, stamp_ns)
-            items.insert(i, item)
+            items.insert(i, entry)
         if self._newest[side] is None or stamp_ns > self._newest[side]:
             self._newest[side] = stamp_ns
 
@@ -183,8 +193,8 @@ class StereoSynchronizer(Generic[T]):
                 self._drop_until(s, pair_items[s][0])
                 self._last_paired[s] = pair_items[s][0]
             self.stats.pairs += 1
-            (ls, li), (rs, ri) = pair_items['left'], pair_items['right']
-            return [StereoPair(ls, rs, li, ri)]
+            (ls, (li, lt)), (rs, (ri, rt)) = pair_items['left'], pair_items['right']
+            return [StereoPair(ls, rs, li, ri, abs(lt - rt))]
         self._prune(side)
         self._prune(other)
         return []
