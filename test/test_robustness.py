@@ -608,9 +608,13 @@ def test_absurd_set_pose_never_publishes_non_finite_odometry(make_rig):
         rig.assert_logged('~/set_pose ignored: the pose or its covariance overflows', ERROR)
         rig.good_run([3])
         assert _position(rig.odom.last)[0] < 1e3
-        pose.pose.pose.position.x = 1e150  # accepted, but the odometry overflows
+        # Accepted (a zero covariance stays finite in the camera frame), but the next pair's
+        # covariance increment, moved out to 1e308 m, overflows whatever the velocity's
+        # uncertainty (1e150 with a 0.01 covariance overflowed only for some).
+        pose.pose.pose.position.x = 1e308
+        pose.pose.covariance = [0.0] * 36
         pub.publish(pose)
-        rig.assert_logged('pose set to [1e+150', Log.INFO)
+        rig.assert_logged('pose set to [1e+308', Log.INFO)
         rig.send_frame(4)
         rig.wait_count('non_finite_skipped', 1)
     finally:
