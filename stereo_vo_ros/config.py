@@ -51,7 +51,10 @@ class TrackerConfig:
     quality_level: float = _f(
         0.01, 'Shi-Tomasi quality level relative to the best corner.', 1e-4, 1.0)
     block_size: int = _f(7, 'Shi-Tomasi block size (pixels).', 3, 31)
-    win_size_px: int = _f(21, 'KLT window side (pixels, odd).', 5, 61)
+    win_size_px: int = _f(
+        15, 'KLT window side (pixels, odd). 15 rather than the usual 21: on a fast road the '
+        'window deforms within a frame and a smaller one follows it better (rendered highway '
+        'without vehicles, seed 4: 2.75 % t_rel at 21, 1.15 % at 15).', 5, 61)
     pyramid_levels: int = _f(
         3, 'KLT pyramid levels above the base image when no prediction is available.', 0, 8)
     predicted_pyramid_levels: int = _f(
