@@ -118,13 +118,15 @@ class Scene:
 def oracle_correspondences(scene: Scene, i: int, corr: Correspondences, mode: str,
                            noise_px: float, rng: np.random.Generator) -> Correspondences:
     """Return the correspondences of frame i as the mode changes them (see the module)."""
+    if mode == 'tracked':
+        return corr
     fp, fc = scene.frames[i - 1], scene.frames[i]
     pl, pr = corr.prev_left.copy(), corr.prev_right.copy()
     cl, cr = corr.cur_left.copy(), corr.cur_right.copy()
     ex = scene.exact(i, pl)
     static = scene.static(fp.static_left, pl) & scene.static(fc.static_left, cl)
     verified = static & ex['visible']
-    keep = np.ones(len(pl), bool) if mode == 'tracked' else static
+    keep = static
     parts = mode.split('+')
     if 'temporal' in parts:
         disparity = cl[verified, 0] - cr[verified, 0]

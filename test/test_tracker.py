@@ -95,6 +95,14 @@ def shift_prior(delta: tuple[float, float]):
     return prior
 
 
+def shift_errors(c, delta: tuple[float, float]) -> list[np.ndarray]:
+    """Absolute errors (N, 2) of prev right, cur left and cur right after a pure ``pair`` shift."""
+    p = c.prev_left
+    d = np.array([DISPARITY, 0.0])
+    return [np.abs(got - want) for got, want in ((c.prev_right, p - d), (c.cur_left, p + delta),
+                                                 (c.cur_right, p + delta - d))]
+
+
 def inside(points: np.ndarray, box: tuple[float, float, float, float], margin: float
            ) -> np.ndarray:
     """(N,) bool: points inside box (x0, y0, x1, y1) shrunk by margin."""
@@ -146,11 +154,8 @@ def test_quadruples_match_true_positions(use_prior):
     c = res.correspondences
     assert res.stats.used_prior == use_prior
     assert len(c) > 0.9 * first.stats.n_features
-    p = c.prev_left
-    d = np.array([DISPARITY, 0.0])
-    for got, want in ((c.prev_right, p - d), (c.cur_left, p + delta),
-                      (c.cur_right, p + delta - d)):
-        assert np.abs(got - want).max() < 0.1
+    for err in shift_errors(c, delta):
+        assert err.max() < 0.1
     assert_finite(res)
     assert np.all(c.ages == 1)
     # A third frame: the same ids, older.
@@ -212,11 +217,7 @@ def test_default_windows_on_a_pure_shift():
         first = tracker.track(*pair(M1), calib)
         c = tracker.track(*pair(M2), calib, prior).correspondences
         assert len(c) > 0.9 * first.stats.n_features
-        p = c.prev_left
-        d = np.array([DISPARITY, 0.0])
-        for got, want in ((c.prev_right, p - d), (c.cur_left, p + delta),
-                          (c.cur_right, p + delta - d)):
-            err = np.abs(got - want)
+        for err in shift_errors(c, delta):
             assert np.median(err) < 0.02
             assert err.max() < 0.3
 
