@@ -191,6 +191,26 @@ class RansacConfig:
     hypothesis_iterations: int = _f(
         3, 'Filter iterations per hypothesis on its minimal sample.', 1, 100)
     seed: int = _f(0, 'Seed of the random sampler (deterministic runs).', 0, 2**31 - 1)
+    ground_weight: float = _f(
+        4.0, 'Weight of an inlier on the ground plane in the RANSAC inlier count (1: a plain '
+        'count, as in paper 1). The road does not move; a vehicle ahead that keeps the '
+        "camera's speed looks static and can otherwise outvote the true motion.", 1.0, 100.0,
+        dynamic=True)
+    ground_tolerance_m: float = _f(
+        0.15, 'A point within this distance of the fitted ground plane is on the ground (m).',
+        0.01, 2.0, dynamic=True)
+    ground_max_tilt_deg: float = _f(
+        15.0, "Largest angle between the ground plane's normal and the camera's y axis (down) "
+        '(deg): the plane is searched for a forward-looking camera.', 0.0, 90.0, dynamic=True)
+    ground_max_height_m: float = _f(
+        4.0, 'Largest height of the camera above the ground plane (m).', 0.2, 100.0,
+        dynamic=True)
+    max_outlier_streak: int = _f(
+        3, 'With RANSAC on, leave a feature out of RANSAC and the update once it has been a '
+        'clear outlier '
+        '(error above twice the inlier threshold) of the accepted motion in this many '
+        'consecutive frames; it comes back when it fits again (0: never leave out). Keeps '
+        'features on moving vehicles out.', 0, 1000, dynamic=True)
 
 
 @dataclass
@@ -215,6 +235,11 @@ class PipelineConfig:
     max_speed: float = _f(
         60.0, 'A linear speed above this is rejected as implausible (m/s).', 0.1, 1000.0,
         dynamic=True)
+    prior_max_velocity_std: float = _f(
+        5.0, 'Track without the motion prior (from the previous positions, with '
+        'tracker.pyramid_levels) while the std of the linear velocity exceeds this (m/s): at '
+        'the start and after a loss the prior predicts no motion, and fast features would be '
+        'lost.', 0.0, 1000.0, dynamic=True)
 
 
 @dataclass

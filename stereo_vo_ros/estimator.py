@@ -5,8 +5,12 @@ Frame-to-frame egomotion from stereo correspondences (paper 1, section III).
 new set of correspondences between the previous and the current stereo pair, runs
 
 1. the constant-velocity prediction ``y_k+1 = y_k + w_k`` (``P += Q``),
-2. bucketing of the correspondences (section III-C),
-3. RANSAC with 3-point samples (section III-D),
+2. bucketing of the correspondences (section III-C), leaving out the features that were clear
+   outliers of the accepted motion in the last ``ransac.max_outlier_streak`` frames (not in
+   the papers: they keep features on moving vehicles out),
+3. RANSAC with 3-point samples (section III-D), its inliers on the ground plane of the previous
+   pair counted ``ransac.ground_weight`` times (not in the papers; see
+   :mod:`~stereo_vo_ros.ground_plane`),
 4. the final filter update on all inliers of the best sample (section III-E),
 
 and returns a :class:`~stereo_vo_ros.records.MotionEstimate`. It runs on correspondences from any
@@ -24,6 +28,7 @@ from . import bucketing
 from .camera import StereoCalibration
 from .config import Config, RansacConfig
 from .filters import make_filter
+from .ground_plane import ground_mask
 from .motion import TransferModel, transform_from_velocity
 from .ransac import BatchedMeasurement, ransac, reprojection_errors
 from .records import Correspondences, MotionEstimate, TrackingStatus
@@ -31,6 +36,8 @@ from .records import Correspondences, MotionEstimate, TrackingStatus
 LOG = logging.getLogger(__name__)
 #: Coasting inflates the velocity variances up to this many times the initial ones.
 COAST_VARIANCE_CAP = 1.0
+#: A feature is a clear outlier when its error exceeds this many inlier thresholds.
+OUTLIER_STREAK_FACTOR = 2.0
 
 
 def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
@@ -116,6 +123,9 @@ class MotionEstimator:
         self.config = config
         self.filter = make_filter(config.filter)
         self.rng = np.random.default_rng(config.ransac.seed)
+        self.ground_rng = np.random.default_rng([config.ransac.seed, 1])
+        #: Feature id -> consecutive frames as a clear outlier of the accepted motion.
+        self.outlier_streak: dict[int, int] = {}
         self.reset()
 
     # -- state -------------------------------------------------------------------------
@@ -135,6 +145,7 @@ class MotionEstimator:
         """Forget the motion: zero (or given) velocity with the initial covariance."""
         self.mean = np.zeros(6) if velocity is None else np.asarray(velocity, np.float64).copy()
         self.cov = self.initial_covariance()
+        self.outlier_streak = {}
 
     def predict(self) -> tuple[np.ndarray, np.ndarray]:
         """Return the constant-velocity prediction (mean (6,), cov (6, 6)); no state change."""
@@ -204,7 +215,12 @@ class MotionEstimator:
         used = np.zeros(n_all, bool)
         finite = np.all(np.isfinite(np.hstack([corr.prev_left, corr.prev_right, corr.cur_left,
                                                corr.cur_right])), axis=1) if n_all else used
-        candidates = np.flatnonzero(finite)
+        candidates = watched = np.flatnonzero(finite)
+        streak = cfg.ransac.max_outlier_streak
+        if streak > 0 and cfg.ransac.enabled and corr.ids.size and self.outlier_streak:
+            left_out = np.fromiter((self.outlier_streak.get(int(i), 0) >= streak
+                                    for i in corr.ids[candidates]), bool, candidates.size)
+            candidates = candidates[~left_out]
         if candidates.size and cfg.bucketing.enabled:
             size = image_size or calib.size
             prio = corr.ages[candidates] if corr.ages.size else None
@@ -231,11 +247,16 @@ class MotionEstimator:
                                               gain[:, 2] + gain[:, 3]], axis=1))
         hypotheses = 0
         inl = np.ones(len(candidates), bool)
+        gate = cfg.ransac.inlier_threshold_px
         if cfg.ransac.enabled:
+            weights = None
+            if cfg.ransac.ground_weight != 1.0:
+                on_ground = ground_mask(calib, sub.prev_left, sub.prev_right, cfg.ransac,
+                                        self.ground_rng)
+                weights = np.where(on_ground, cfg.ransac.ground_weight, 1.0)
             res = ransac(model, z, prior_mean, prior_cov, self.filter, noise_var, cfg.ransac,
-                         self.rng, scale)
+                         self.rng, scale, weights)
             inl, hypotheses = res.inliers, res.hypotheses
-            gate = cfg.ransac.inlier_threshold_px
             if cfg.ransac.adaptive_threshold and inl.sum() >= cfg.pipeline.min_inliers:
                 gate = adaptive_gate(res.errors[inl], cfg.ransac)
                 inl = res.errors < gate
@@ -260,9 +281,36 @@ class MotionEstimator:
             inl = err < gate
         used[candidates[inl]] = True
         self.mean, self.cov = mean, cov
+        self._count_outliers(corr.subset(watched), calib, dt, calib_cur, gate)
         return MotionEstimate(velocity=mean.copy(), covariance=cov.copy(),
                               T_prev_cur=transform_from_velocity(mean, dt), inliers=used,
                               iterations=iters, status=TrackingStatus.OK, hypotheses=hypotheses)
+
+    def _count_outliers(self, corr: Correspondences, calib: StereoCalibration, dt: float,
+                        calib_cur: StereoCalibration | None, gate: float) -> None:
+        """
+        Update each feature's streak of frames as a clear outlier of the accepted motion.
+
+        Every finite correspondence counts, also those bucketing or an earlier streak left out:
+        a feature whose error (pixels) is above ``OUTLIER_STREAK_FACTOR * gate`` extends its
+        streak, one below ``gate`` ends it, one in between keeps it. Features no longer tracked
+        are forgotten.
+        """
+        cfg = self.config.ransac
+        if cfg.max_outlier_streak <= 0 or not cfg.enabled or not corr.ids.size or not len(corr):
+            self.outlier_streak = {}
+            return
+        model = TransferModel(calib, corr.prev_left, corr.prev_right, dt, calib_cur)
+        err = reprojection_errors(model, self.mean[None],
+                                  np.hstack([corr.cur_left, corr.cur_right]))[0]
+        old = self.outlier_streak
+        streak = {}
+        for fid, e in zip(corr.ids.tolist(), err.tolist()):
+            if not e < gate * OUTLIER_STREAK_FACTOR:  # NaN and inf count as outliers
+                streak[fid] = old.get(fid, 0) + 1
+            elif e >= gate:
+                streak[fid] = old.get(fid, 0)
+        self.outlier_streak = streak
 
     def _fail(self, status: TrackingStatus, dt: float, used: np.ndarray, hypotheses: int,
               iters: int, why: str) -> MotionEstimate:

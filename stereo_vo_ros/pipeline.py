@@ -222,7 +222,16 @@ class StereoOdometry:
         self.estimator.reset()
 
     def _prior(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float):
-        """Constant-velocity prediction of the current pixels for the tracker (initial flow)."""
+        """
+        Constant-velocity prediction of the current pixels for the tracker (initial flow).
+
+        None while the velocity is unknown (linear std above
+        ``pipeline.prior_max_velocity_std``): the tracker then searches with its full pyramid.
+        """
+        cov = self.estimator.cov[:3, :3]
+        if np.sqrt(max(float(np.max(np.diag(cov))), 0.0)) > \
+                self.config.pipeline.prior_max_velocity_std:
+            return None
         velocity = self.estimator.mean.copy()
 
         def predict(prev_left: np.ndarray, prev_right: np.ndarray

@@ -116,7 +116,7 @@ class RansacResult:
 
 def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_cov: np.ndarray,
            filt: Filter, noise_var: np.ndarray, cfg: RansacConfig, rng: np.random.Generator,
-           scale: np.ndarray | None = None) -> RansacResult:
+           scale: np.ndarray | None = None, weights: np.ndarray | None = None) -> RansacResult:
     """
     Select the inliers of the best 3-point hypothesis.
 
@@ -140,6 +140,9 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
         Random generator (seeded by the caller for repeatable runs).
     scale : np.ndarray, optional
         (N, 2) error scale per point and image (see :func:`reprojection_errors`).
+    weights : np.ndarray, optional
+        (N,) weight of each point in the inlier count (default 1: the plain count of paper
+        1; the estimator weights points on the ground plane).
 
     Returns
     -------
@@ -157,7 +160,7 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
                       max_iterations=cfg.hypothesis_iterations)
     err = reprojection_errors(model, out.mean, z, scale)  # (H, N)
     inl = err < cfg.inlier_threshold_px
-    count = inl.sum(axis=1)
+    count = inl.sum(axis=1) if weights is None else inl @ np.asarray(weights, np.float64)
     score = np.where(inl, err, 0.0).sum(axis=1)
     best = int(np.lexsort((score, -count))[0])
     return RansacResult(inliers=inl[best], state=out.mean[best], hypotheses=n_hyp,
