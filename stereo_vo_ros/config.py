@@ -183,10 +183,10 @@ class RansacConfig:
         '(2-D Gaussian errors), between min_inlier_threshold_px and inlier_threshold_px.',
         dynamic=True)
     adaptive_sigmas: float = _f(
-        4.0, 'Adaptive inlier threshold in sigmas of the residual (4: 99.97 % of 2-D Gaussian '
+        3.0, 'Adaptive inlier threshold in sigmas of the residual (3: 98.9 % of 2-D Gaussian '
         'errors fall inside).', 1.0, 100.0, dynamic=True)
     min_inlier_threshold_px: float = _f(
-        1.0, 'Lower bound of the adaptive inlier threshold (pixels).', 0.05, 100.0,
+        0.5, 'Lower bound of the adaptive inlier threshold (pixels).', 0.05, 100.0,
         dynamic=True)
     hypothesis_iterations: int = _f(
         3, 'Filter iterations per hypothesis on its minimal sample.', 1, 100)

@@ -175,9 +175,9 @@ def test_ransac_recovers_motion_with_half_outliers(filter_type):
 
 
 def test_adaptive_gate_follows_the_residual_scale():
-    cfg = Config().ransac  # 4 sigma between 1 and 2 px
+    cfg = Config().ransac  # 3 sigma between 0.5 and 2 px
     rng = np.random.default_rng(2)
-    for sigma, expected in ((0.1, 1.0), (0.4, 1.6), (1.0, 2.0)):
+    for sigma, expected in ((0.1, 0.5), (0.4, 1.2), (1.0, 2.0)):
         errors = np.linalg.norm(rng.normal(0, sigma, (20000, 2)), axis=1)
         assert adaptive_gate(errors, cfg) == pytest.approx(expected, rel=0.03)
     assert adaptive_gate(np.zeros(0), cfg) == cfg.inlier_threshold_px
@@ -188,7 +188,7 @@ def test_adaptive_threshold_rejects_near_misses():
     # scale (pixels over the spread of the previous pair's noise through the transfer, the
     # units of the RANSAC gate): a KLT window straddling an occlusion, an edge that slid.
     # Inside the fixed 2 px gate they count as inliers; the threshold tightened to the
-    # residual scale (4 sigma, at least 1) leaves them out of the final update.
+    # residual scale (3 sigma, at least 0.5 px) leaves them out of the final update.
     rng = np.random.default_rng(8)
     calib = kitti_calibration()
     y = np.array([0.1, 0.0, 10.0, 0.01, 0.02, 0.0])
