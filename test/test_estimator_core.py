@@ -279,10 +279,8 @@ def test_epipolar_correction_moves_matches_onto_their_epipolar_lines():
         np.testing.assert_array_equal(a, b)
 
 
-def test_epipolar_correction_of_raw_matches_uses_the_calibrated_geometry():
-    # Unrectified cameras (cv2.correctMatches with the calibrated F): corrected pairs lie on
-    # their epipolar lines and move by no more than the noise.
-    rng = np.random.default_rng(12)
+def raw_rig():
+    """Return an unrectified, undistorted rig (EuRoC-like): raw calibration, K1, K2, R, t."""
     w, h = 752, 480
     K1 = np.array([[458.0, 0, 367.0], [0, 457.0, 248.0], [0, 0, 1]])
     K2 = np.array([[457.0, 0, 379.0], [0, 456.0, 255.0], [0, 0, 1]])
@@ -292,6 +290,14 @@ def test_epipolar_correction_of_raw_matches_uses_the_calibrated_geometry():
                                            t_rl.reshape(3, 1), alpha=0)
     raw = StereoCalibration.from_camera_info(_camera_info(K1, [0] * 5, R1, P1, w, h),
                                              _camera_info(K2, [0] * 5, R2, P2, w, h), 'raw')
+    return raw, K1, K2, R_rl, t_rl
+
+
+def test_epipolar_correction_of_raw_matches_uses_the_calibrated_geometry():
+    # Unrectified cameras (cv2.correctMatches with the calibrated F): corrected pairs lie on
+    # their epipolar lines and move by no more than the noise.
+    rng = np.random.default_rng(12)
+    raw, K1, K2, R_rl, t_rl = raw_rig()
     X = np.column_stack([rng.uniform(-3, 3, 40), rng.uniform(-2, 2, 40),
                          rng.uniform(2, 12, 40)])
     left, right = project(raw.projection_left(), X), project(raw.projection_right(), X)

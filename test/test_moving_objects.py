@@ -1,11 +1,7 @@
 """Vehicles that move with the camera: ground-plane weights, outlier streaks, uninformed prior."""
 
-import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
-from stereo_vo_ros.camera import StereoCalibration
 
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.estimator import MotionEstimator
@@ -15,7 +11,7 @@ from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, TrackingStatus
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 
-from test_estimator_core import _camera_info, kitti_calibration, observe
+from test_estimator_core import kitti_calibration, observe, raw_rig
 
 CAMERA_HEIGHT_M = 1.65
 #: Forward motion at 25 m/s (camera optical frame: z forward).
@@ -71,15 +67,7 @@ def test_ground_plane_is_found_among_walls_and_vehicles():
 
 
 def test_triangulation_of_a_raw_rig_with_a_rotated_right_camera():
-    w, h = 752, 480
-    K1 = np.array([[458.0, 0, 367.0], [0, 457.0, 248.0], [0, 0, 1]])
-    K2 = np.array([[457.0, 0, 379.0], [0, 456.0, 255.0], [0, 0, 1]])
-    R_rl = Rotation.from_rotvec([0.003, -0.01, 0.002]).as_matrix()
-    t_rl = np.array([-0.11, 0.0004, -0.0008])
-    R1, R2, P1, P2, *_ = cv2.stereoRectify(K1, np.zeros(5), K2, np.zeros(5), (w, h), R_rl,
-                                           t_rl.reshape(3, 1), alpha=0)
-    raw = StereoCalibration.from_camera_info(_camera_info(K1, [0] * 5, R1, P1, w, h),
-                                             _camera_info(K2, [0] * 5, R2, P2, w, h), 'raw')
+    raw, K1, K2, R_rl, t_rl = raw_rig()
     rng = np.random.default_rng(7)
     X = np.column_stack([rng.uniform(-3, 3, 50), rng.uniform(-2, 2, 50), rng.uniform(2, 30, 50)])
     left = (X @ K1.T)[:, :2] / X[:, 2:]
