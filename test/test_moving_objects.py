@@ -176,6 +176,11 @@ def test_features_that_keep_failing_are_left_out_until_they_fit():
     assert not any(est.outlier_streak.get(i, 0) for i in range(100))
     res = est.estimate(frame(np.zeros((60, 2))), calib, DT)
     assert res.inliers[40:].sum() >= 55
+    # Never so many left out that fewer than pipeline.min_features remain: then all are used.
+    est.outlier_streak = dict.fromkeys(range(100), 10)
+    res = est.estimate(frame(np.zeros((60, 2))), calib, DT)
+    assert res.status is TrackingStatus.OK and res.inliers.sum() >= 95
+    assert est.outlier_streak == {}
     # A reset forgets the streaks.
     est.outlier_streak[7] = 5
     est.reset()
