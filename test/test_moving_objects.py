@@ -74,6 +74,12 @@ def test_triangulation_of_a_raw_rig_with_a_rotated_right_camera():
     Xr = X @ R_rl.T + t_rl
     right = (Xr @ K2.T)[:, :2] / Xr[:, 2:]
     np.testing.assert_allclose(triangulate(raw, left, right), X, rtol=1e-6, atol=1e-6)
+    # Parallel rays (zero disparity) meet nowhere: NaN, also on a rectified rig.
+    kitti = kitti_calibration()
+    assert np.isnan(triangulate(kitti, np.array([[600.0, 200.0], [300.0, 250.0]]),
+                                np.array([[600.0, 200.0], [300.0, 250.0]]))).all()
+    far = triangulate(kitti, np.array([[600.0, 200.0]]), np.array([[599.0, 200.0]]))
+    assert far[0, 2] == pytest.approx(kitti.K_left[0, 0] * kitti.baseline_m)
     # Behind the camera, or not finite: NaN.
     out = triangulate(raw, np.array([[np.nan, 1.0], [300.0, 200.0]]),
                       np.array([[1.0, 1.0], [400.0, 200.0]]))
