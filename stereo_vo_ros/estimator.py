@@ -86,18 +86,6 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
     return Correspondences(prev_left, prev_right, cur_left, cur_right, corr.ids, corr.ages)
 
 
-def error_scale(gain: np.ndarray) -> np.ndarray:
-    """
-    Reprojection error scale per point and image from the previous-noise gain.
-
-    ``gain`` (N, 4) is the variance added to each current pixel coordinate by the previous
-    pair's noise, relative to the pixel noise (``TransferModel.previous_noise_gain``); the
-    result (N, 2) divides the left and right image errors (see ``reprojection_errors``).
-    """
-    return np.sqrt(1.0 + 0.5 * np.stack([gain[:, 0] + gain[:, 1], gain[:, 2] + gain[:, 3]],
-                                        axis=1))
-
-
 #: Median of |e| for a 2-D error e ~ N(0, s^2 I), in units of s (Rayleigh distribution).
 RAYLEIGH_MEDIAN = np.sqrt(2.0 * np.log(2.0))
 
@@ -256,7 +244,8 @@ class MotionEstimator:
         else:
             gain = np.zeros_like(z)
         noise_var = sigma2 * (1.0 + gain)  # (n, 4)
-        scale = error_scale(gain)
+        scale = np.sqrt(1.0 + 0.5 * np.stack([gain[:, 0] + gain[:, 1],
+                                              gain[:, 2] + gain[:, 3]], axis=1))
         hypotheses = 0
         inl = np.ones(len(candidates), bool)
         gate = cfg.ransac.inlier_threshold_px
