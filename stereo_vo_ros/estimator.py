@@ -11,7 +11,9 @@ new set of correspondences between the previous and the current stereo pair, run
 3. RANSAC with 3-point samples (section III-D), its inliers on the ground plane of the previous
    pair counted ``ransac.ground_weight`` times (not in the papers; see
    :mod:`~stereo_vo_ros.ground_plane`),
-4. the final filter update on all inliers of the best sample (section III-E),
+4. the final filter update on all inliers of the best sample (section III-E), then
+   ``filter.robust_rounds`` updates with Cauchy weights from the residuals (not in the
+   papers: the few badly tracked inliers are not symmetric and would bias the speed),
 
 and returns a :class:`~stereo_vo_ros.records.MotionEstimate`. It runs on correspondences from any
 front end (the KLT tracker, a simulation, an .npz file) and imports no ROS.
@@ -88,6 +90,8 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
 
 #: Median of |e| for a 2-D error e ~ N(0, s^2 I), in units of s (Rayleigh distribution).
 RAYLEIGH_MEDIAN = np.sqrt(2.0 * np.log(2.0))
+#: Floor of the residual sigma of the robust reweighting (pixels): exact data keeps weight ~1.
+MIN_ROBUST_SIGMA_PX = 0.05
 
 
 def adaptive_gate(inlier_errors: np.ndarray, cfg: RansacConfig) -> float:
@@ -265,10 +269,8 @@ class MotionEstimator:
             return self._fail(TrackingStatus.TOO_FEW_INLIERS, dt, used, hypotheses, 0,
                               f'{int(inl.sum())} inliers of {len(candidates)} (need '
                               f'{cfg.pipeline.min_inliers})')
-        X = model.X[inl][None]
-        out = self.filter.update(prior_mean[None], prior_cov, BatchedMeasurement(model, X),
-                                 z[inl].reshape(1, -1), noise_var[inl].reshape(1, -1))
-        mean, cov, iters = out.mean[0], out.cov[0], int(out.iterations[0])
+        mean, cov, iters = self._final_update(prior_mean, prior_cov, model, z, noise_var, scale,
+                                              inl)
         if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
             return self._fail(TrackingStatus.DEGENERATE, dt, used, hypotheses, iters,
                               'non-finite filter update')
@@ -286,6 +288,34 @@ class MotionEstimator:
         return MotionEstimate(velocity=mean.copy(), covariance=cov.copy(),
                               T_prev_cur=transform_from_velocity(mean, dt), inliers=used,
                               iterations=iters, status=TrackingStatus.OK, hypotheses=hypotheses)
+
+    def _final_update(self, prior_mean: np.ndarray, prior_cov: np.ndarray,
+                      model: TransferModel, z: np.ndarray, noise_var: np.ndarray,
+                      scale: np.ndarray, inl: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """
+        Filter update on the inliers, robustly reweighted (``filter.robust_loss``).
+
+        The first update is paper 1's (section III-E). With the Cauchy loss, each further round
+        computes every inlier's reprojection error ``e`` (pixels, scaled as RANSAC's) under the
+        latest estimate, ``sigma`` from their median (2-D Gaussian errors, as
+        :func:`adaptive_gate`), and updates again from the prior with each inlier's variances
+        divided by its weight ``1 / (1 + (e / (robust_scale_sigmas * sigma))^2)``. Returns
+        the mean (6,), covariance (6, 6) and iterations of the last update.
+        """
+        fcfg = self.config.filter
+        h = BatchedMeasurement(model, model.X[inl][None])
+        z_in, var = z[inl].reshape(1, -1), noise_var[inl]
+        out = self.filter.update(prior_mean[None], prior_cov, h, z_in, var.reshape(1, -1))
+        rounds = fcfg.robust_rounds if fcfg.robust_loss == 'cauchy' else 0
+        for _ in range(rounds):
+            if not np.all(np.isfinite(out.mean[0])):
+                break  # the caller reports the non-finite update
+            err = reprojection_errors(model, out.mean, z, scale)[0][inl]
+            sigma = max(float(np.median(err)) / RAYLEIGH_MEDIAN, MIN_ROBUST_SIGMA_PX)
+            weight = 1.0 / (1.0 + (err / (fcfg.robust_scale_sigmas * sigma)) ** 2)
+            out = self.filter.update(prior_mean[None], prior_cov, h, z_in,
+                                     (var / weight[:, None]).reshape(1, -1))
+        return out.mean[0], out.cov[0], int(out.iterations[0])
 
     def _count_outliers(self, corr: Correspondences, calib: StereoCalibration, dt: float,
                         calib_cur: StereoCalibration | None, gate: float) -> None:

@@ -208,8 +208,8 @@ def test_affine_refinement_tracks_an_approaching_plane_more_precisely():
 
 
 def test_default_windows_on_a_pure_shift():
-    """The default 15-pixel windows track a rigid shift to a few hundredths of a pixel."""
-    assert TrackerConfig().win_size_px == 15
+    """The default 13-pixel windows track a rigid shift to a few hundredths of a pixel."""
+    assert TrackerConfig().win_size_px == 13
     calib = rectified_calib()
     delta = (M2[0] - M1[0], M2[1] - M1[1])
     for prior in (None, shift_prior(delta)):
