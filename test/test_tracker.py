@@ -77,7 +77,7 @@ def rectified_calib(size: tuple[int, int] = (W, H)) -> StereoCalibration:
 
 
 #: KLT window of these tests (pixels). They check exactness on a rigidly shifted texture, where
-#: a larger window averages more texture; the default (15 px, chosen for deforming road
+#: a larger window averages more texture; the default (13 px, chosen for deforming road
 #: surfaces) is checked on the same shift by ``test_default_windows_on_a_pure_shift``.
 WIN_PX = 21
 
