@@ -691,9 +691,10 @@ class StereoTracker:
             return pts_to
         t = CLOCK()
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
+        win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
         out, _ = refine_affine(self._float(img_from), self._float(img_to), pts_from, pts_to,
-                               cfg.affine_win_size_px, cfg.affine_iterations,
-                               horizontal=horizontal, step_px=cfg.affine_step_px)
+                               win, cfg.affine_iterations, horizontal=horizontal,
+                               step_px=cfg.affine_step_px)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 

@@ -746,3 +746,39 @@ def test_aperture_check_drops_edge_features():
     res = off.track(*stripe_pair((0.0, 3.0)), calib)
     assert res.stats.failed['aperture'] == res.stats.n_previous > 50
     assert res.stats.n_tracked == 0 and res.stats.pass_points['temporal_fwd'] == 0
+
+
+def occluder_pair(boundary: int, far: float, near: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rectified pair: a textured band (rows above ``boundary``) in front of a textured plane."""
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+
+    def view(shift_far: float, shift_near: float) -> np.ndarray:
+        v = np.where(ys < boundary, texture(xs - shift_near, ys, seed=2),
+                     texture(xs - shift_far, ys, seed=1))
+        return np.clip(np.round(v), 0, 255).astype(np.uint8)
+    return view(0.0, 0.0), view(-far, -near)
+
+
+def test_smaller_stereo_refinement_window_near_an_occluding_edge():
+    # Corners of the far plane (disparity 8 px) up to 10 rows below a nearer band (10 px): the
+    # windows that reach into the band take some of its disparity. The stereo refinement's
+    # own, smaller window (tracker.affine_stereo_win_size_px) takes less of it; corners away
+    # from the edge are exact either way.
+    calib = rectified_calib()
+    boundary, far = 150, 8.0
+    left, right = occluder_pair(boundary, far, 10.0)
+    error = {}
+    for win in (21, 15):
+        tracker = StereoTracker(config(affine_stereo_win_size_px=win, max_features=400,
+                                       min_distance_px=6.0), BucketingConfig())
+        tracker.track(left, right, calib)
+        q = tracker.track(left, right, calib).correspondences  # the same pair again
+        disparity = q.cur_left[:, 0] - q.cur_right[:, 0]
+        rows = q.cur_left[:, 1]
+        near_edge = (rows > boundary + 1) & (rows < boundary + 11)
+        away = rows > boundary + 15
+        assert near_edge.sum() >= 8 and away.sum() >= 50
+        assert np.abs(disparity[away] - far).max() < 0.05
+        error[win] = float(np.mean(disparity[near_edge] - far))
+    assert error[21] > 0.3  # measured 0.46 px
+    assert 0.0 < error[15] < 0.85 * error[21]  # measured 0.34 px
