@@ -94,15 +94,23 @@ RAYLEIGH_MEDIAN = np.sqrt(2.0 * np.log(2.0))
 MIN_ROBUST_SIGMA_PX = 0.05
 
 
+def residual_sigma(inlier_errors: np.ndarray) -> float:
+    """
+    Per-axis residual scale (pixels) of Euclidean 2-D errors.
+
+    Their median over the Rayleigh median (1.177 sigma); ``inf`` without errors.
+    """
+    return float(np.median(inlier_errors)) / RAYLEIGH_MEDIAN if len(inlier_errors) else np.inf
+
+
 def adaptive_gate(inlier_errors: np.ndarray, cfg: RansacConfig) -> float:
     """
     Inlier threshold from the residual scale of a hypothesis (pixels).
 
-    ``sigma`` is the median of the inliers' Euclidean errors over the Rayleigh median (1.177
-    sigma); the threshold is ``cfg.adaptive_sigmas * sigma`` clipped to
+    The threshold is ``cfg.adaptive_sigmas`` times :func:`residual_sigma` clipped to
     [``cfg.min_inlier_threshold_px``, ``cfg.inlier_threshold_px``].
     """
-    sigma = float(np.median(inlier_errors)) / RAYLEIGH_MEDIAN if len(inlier_errors) else np.inf
+    sigma = residual_sigma(inlier_errors)
     return float(np.clip(cfg.adaptive_sigmas * sigma, cfg.min_inlier_threshold_px,
                          cfg.inlier_threshold_px))
 
@@ -297,10 +305,10 @@ class MotionEstimator:
 
         The first update is paper 1's (section III-E). With the Cauchy loss, each further round
         computes every inlier's reprojection error ``e`` (pixels, scaled as RANSAC's) under the
-        latest estimate, ``sigma`` from their median (2-D Gaussian errors, as
-        :func:`adaptive_gate`), and updates again from the prior with each inlier's variances
-        divided by its weight ``1 / (1 + (e / (robust_scale_sigmas * sigma))^2)``. Returns
-        the mean (6,), covariance (6, 6) and iterations of the last update.
+        latest estimate, ``sigma`` from them (:func:`residual_sigma`, as the adaptive gate), and
+        updates again from the prior with each inlier's variances divided by its weight
+        ``1 / (1 + (e / (robust_scale_sigmas * sigma))^2)``. Returns the mean (6,), covariance
+        (6, 6) and iterations of the last update.
         """
         fcfg = self.config.filter
         h = BatchedMeasurement(model, model.X[inl][None])
@@ -311,7 +319,7 @@ class MotionEstimator:
             if not np.all(np.isfinite(out.mean[0])):
                 break  # the caller reports the non-finite update
             err = reprojection_errors(model, out.mean, z, scale)[0][inl]
-            sigma = max(float(np.median(err)) / RAYLEIGH_MEDIAN, MIN_ROBUST_SIGMA_PX)
+            sigma = max(residual_sigma(err), MIN_ROBUST_SIGMA_PX)
             weight = 1.0 / (1.0 + (err / (fcfg.robust_scale_sigmas * sigma)) ** 2)
             out = self.filter.update(prior_mean[None], prior_cov, h, z_in,
                                      (var / weight[:, None]).reshape(1, -1))
