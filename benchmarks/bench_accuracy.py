@@ -94,7 +94,8 @@ CALIB_ERROR = (1.005, 1.01, 2.0)
 #: The last three rows switch off this package's two departures from paper 2's tracker (the
 #: affine refinement of every match and the aperture check); "neither" is the paper's tracker.
 NO_AFFINE = {'tracker.affine_refinement': False}
-NO_APERTURE = {'tracker.min_eigen_ratio': 0.0}
+NO_APERTURE = {'tracker.min_eigen_ratio': 0.0, 'tracker.min_flow_edge_ratio': 0.0,
+               'tracker.min_flow_edge_ratio_tracked': 0.0}
 ABLATION = (('baseline', None, {}), ('dc', None, {}), ('bc', None, {}), ('db', None, {}),
             ('full', 'closure', {}), ('full', 'roundtrip', {}),
             ('full', 'closure', NO_AFFINE), ('full', 'closure', NO_APERTURE),

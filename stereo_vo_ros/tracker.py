@@ -4,11 +4,13 @@ Stereo KLT feature tracker with the light adaptive checks of paper 2.
 Every call to ``StereoTracker.track`` takes the current stereo pair (t2) and returns the
 quadruples (left t1, right t1, left t2, right t2) of the features that survive, in this order:
 
-1. optional aperture check (``min_eigen_ratio``: features whose KLT window is edge-like are
-   dropped, here and at detection), temporal pass left(t1) -> left(t2) (initial flow from the
-   motion prior when given), then the forward-backward check (eq. 4, delta1); the survivors
-   are refined with an affine window model (``affine_refinement``, not in the paper: see
-   ``affine_klt``);
+1. optional aperture checks (not in the paper; here and at detection): ``min_eigen_ratio``
+   drops features whose KLT window is edge-like, ``min_flow_edge_ratio`` (at detection) and
+   ``min_flow_edge_ratio_tracked`` (here) those whose window is edge-like along the flow the
+   motion prior predicts (lane lines); then the temporal pass left(t1) -> left(t2) (initial
+   flow from the motion prior when given) and the forward-backward check (eq. 4, delta1); the
+   survivors are refined with an affine window model (``affine_refinement``, not in the paper:
+   see ``affine_klt``);
 2. stereo pass left(t2) -> right(t2) starting at the previous (or predicted) disparity; the
    disparity constraint (eq. 6, delta3) and the disparity range run BEFORE the reverse pass, so
    rejected features are not tracked back; then the left-right check (eq. 5, delta2) and the
@@ -16,8 +18,8 @@ quadruples (left t1, right t1, left t2, right t2) of the features that survive, 
 3. light bi-circular check (eq. 7) between right(t2) and right(t1) with a fixed or adaptive
    (eq. 8) threshold delta_d;
 4. replenishment: Shi-Tomasi corners are detected only in the buckets of the bucketing grid that
-   lack features, away from the existing features, and matched (and refined) into the right
-   image.
+   lack features, away from the existing features (and, with a motion prior, not edge-like
+   along their predicted flow), and matched (and refined) into the right image.
 
 A feature is deleted at its first failed check. Which checks run is set by
 ``TrackerConfig.variant`` (see ``klt_checks.CheckSet``). KLT runs on the images as given (raw
@@ -44,7 +46,7 @@ from .config import BucketingConfig, TrackerConfig
 from .errors import ConfigError, ImageError
 from .klt_checks import (
     bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint, disparity_in_range,
-    eigen_ratio, lk_pass, round_trip_error)
+    eigen_ratio, flow_edge_ratio, lk_pass, round_trip_error)
 from .records import Correspondences
 
 logger = logging.getLogger(__name__)
@@ -67,10 +69,12 @@ STAGES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircula
 #: KLT passes, keys of ``TrackerStats.pass_points``.
 PASSES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
           'new_stereo_fwd', 'new_stereo_bwd')
-#: Checks, keys of ``TrackerStats.failed``: aperture (edge-like KLT window), KLT failure of the
-#: temporal pass, forward-backward, KLT failure of the stereo pass, disparity constraint,
-#: disparity range, left-right, KLT failure or threshold of the bi-circular check.
-CHECKS = ('aperture', 'temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr', 'bc')
+#: Checks, keys of ``TrackerStats.failed``: aperture (edge-like KLT window), flow_aperture
+#: (edge-like along the predicted flow), KLT failure of the temporal pass, forward-backward,
+#: KLT failure of the stereo pass, disparity constraint, disparity range, left-right, KLT
+#: failure or threshold of the bi-circular check.
+CHECKS = ('aperture', 'flow_aperture', 'temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr',
+          'bc')
 
 #: Motion prior: (prev_left_ideal (N, 2), prev_right_ideal (N, 2)) -> (cur_left_pred (N, 2),
 #: cur_right_pred (N, 2)), all float64 ideal pixels.
@@ -315,7 +319,8 @@ def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float) -> np.
 
 
 def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: TrackerConfig,
-                   bcfg: BucketingConfig, chosen: np.ndarray | None = None
+                   bcfg: BucketingConfig, chosen: np.ndarray | None = None,
+                   flow: Callable[[np.ndarray], np.ndarray] | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """
     Detect Shi-Tomasi corners only where features are missing.
@@ -338,6 +343,11 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
         Detector and bucketing settings.
     chosen : np.ndarray or None
         (rows, cols) bool buckets to search; None: ``plan_detection`` without blocked buckets.
+    flow : callable or None
+        ``flow(points) -> (M, 2)`` expected displacement (pixels) of (M, 2) raw positions in
+        the next frame. With it, candidates whose ``flow_edge_ratio`` over the KLT window is
+        below ``cfg.min_flow_edge_ratio`` are dropped before the per-bucket choice, so the next
+        corner of their bucket takes the slot.
 
     Returns
     -------
@@ -378,6 +388,12 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
         return empty
     cand = np.concatenate(found).astype(np.float32)
     rank = np.concatenate(ranks).astype(np.float64)
+    if flow is not None and cfg.min_flow_edge_ratio > 0:
+        expected = np.asarray(flow(cand.astype(np.float64)), np.float64).reshape(-1, 2)
+        keep = flow_edge_ratio(img, cand, expected, cfg.win_size_px) >= cfg.min_flow_edge_ratio
+        cand, rank = cand[keep], rank[keep]
+        if not len(cand):
+            return empty
     if not bcfg.enabled:
         return cand[np.argsort(rank, kind='stable')][:need], empty[1]
     # Per-bucket quota: existing features first, then candidates by their rank in their crop.
@@ -518,7 +534,7 @@ class StereoTracker:
             corr, raw = _empty_correspondences(), _empty_correspondences()
         else:
             corr, raw = self._track_existing(left8, right8, calib, prior, stats)
-        self._replenish(left8, right8, calib, stats)
+        self._replenish(left8, right8, calib, stats, prior if stats.used_prior else None)
         # Own copies: the caller may reuse its image buffers.
         self._prev = (left8.copy() if np.may_share_memory(left8, left) else left8,
                       right8.copy() if np.may_share_memory(right8, right) else right8)
@@ -548,6 +564,33 @@ class StereoTracker:
         raw_r[bad] = np.nan
         return raw_l, raw_r
 
+    def _expected_flow(self, prior: Prior | None, calib: StereoCalibration
+                       ) -> Callable[[np.ndarray], np.ndarray] | None:
+        """
+        Return the expected displacement of new corners into the next pair, or None.
+
+        The motion prior of this pair, applied again from here (constant velocity), to each
+        corner at the median disparity of the tracked features: the direction of the flow is
+        what the detection check needs, and it hardly depends on the depth. None without a
+        prior, without tracked features or with the check off.
+        """
+        f = self._feats
+        if prior is None or not len(f) or self.cfg.min_flow_edge_ratio <= 0:
+            return None
+        disparity = f.left_ideal[:, 0] - f.right_ideal[:, 0]
+        disparity = disparity[np.isfinite(disparity) & (disparity > 0)]
+        if not len(disparity):
+            return None
+        offset = np.array([float(np.median(disparity)), 0.0])
+
+        def flow(raw: np.ndarray) -> np.ndarray:
+            ideal = calib.undistort_left(raw)
+            pred = np.asarray(prior(ideal, ideal - offset)[0], np.float64).reshape(-1, 2)
+            if pred.shape != raw.shape:
+                return np.full(raw.shape, np.nan)
+            return calib.distort_left(pred) - raw
+        return flow
+
     def _track_existing(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
                         prior: Prior | None, stats: TrackerStats
                         ) -> tuple[Correspondences, Correspondences]:
@@ -574,6 +617,13 @@ class StereoTracker:
             # the initial flow (the motion prior), not from the image.
             ok = eigen_ratio(prev_left, f.left_raw, win) >= cfg.min_eigen_ratio
             failed['aperture'] = int(np.count_nonzero(~ok))
+            alive = alive[ok]
+        if pred is not None and cfg.min_flow_edge_ratio_tracked > 0 and len(alive):
+            # The same along the predicted flow, over the window the refinement will use.
+            ok = flow_edge_ratio(prev_left, f.left_raw[alive],
+                                 pred[0][alive] - f.left_raw[alive],
+                                 cfg.affine_win_size_px) >= cfg.min_flow_edge_ratio_tracked
+            failed['flow_aperture'] = int(np.count_nonzero(~ok))
             alive = alive[ok]
         npts['temporal_fwd'] = len(alive)
         cur_l = f.left_raw.copy()
@@ -699,7 +749,7 @@ class StereoTracker:
         return out.astype(pts_to.dtype)
 
     def _replenish(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
-                   stats: TrackerStats) -> None:
+                   stats: TrackerStats, prior: Prior | None = None) -> None:
         """Detect corners where features are missing and match them into the right image."""
         cfg, f = self.cfg, self._feats
         need = cfg.max_features - len(f)
@@ -715,7 +765,8 @@ class StereoTracker:
                 self._barren = np.zeros((bcfg.rows, bcfg.cols), np.int64)
             chosen = plan_detection(f.left_raw, need, size, bcfg, self._barren > 0)
             self._barren = np.maximum(self._barren - 1, 0)
-        pts, found = detect_corners(left, f.left_raw, need, cfg, bcfg, chosen)
+        pts, found = detect_corners(left, f.left_raw, need, cfg, bcfg, chosen,
+                                    self._expected_flow(prior, calib))
         stats.timings_ms['detection'] = (CLOCK() - t) * 1e3
         stats.n_detected = len(pts)
         if chosen is not None and len(pts):

@@ -20,7 +20,9 @@ from stereo_vo_ros.adaptive_threshold import adaptive_threshold, bicircular_thre
 from stereo_vo_ros.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfig
 from stereo_vo_ros.errors import ConfigError, ImageError
-from stereo_vo_ros.klt_checks import bicircular_error, CheckSet, disparity_constraint, eigen_ratio
+from stereo_vo_ros.klt_checks import (
+    bicircular_error, CheckSet, disparity_constraint, eigen_ratio, flow_edge_ratio,
+    gradient_matrix)
 from stereo_vo_ros.tracker import detect_corners, StereoTracker
 
 W, H = 400, 300
@@ -706,12 +708,12 @@ def test_config_dataclass_is_not_mutated():
     assert dataclasses.asdict(cfg) == before
 
 
-def stripes(shift: tuple[float, float]) -> np.ndarray:
+def stripes(shift: tuple[float, float], modulation: float = 4.0) -> np.ndarray:
     """uint8 image of vertical stripes with a faint vertical modulation (edges, no corners)."""
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
     x, y = xs - shift[0], ys - shift[1]
     v = 128 + 90 * np.sin(2 * np.pi * x / 23.0) * np.sin(2 * np.pi * x / 61.0) + \
-        4 * np.sin(2 * np.pi * y / 37.0)
+        modulation * np.sin(2 * np.pi * y / 37.0)
     return np.clip(np.round(v), 0, 255).astype(np.uint8)
 
 
@@ -746,6 +748,86 @@ def test_aperture_check_drops_edge_features():
     res = off.track(*stripe_pair((0.0, 3.0)), calib)
     assert res.stats.failed['aperture'] == res.stats.n_previous > 50
     assert res.stats.n_tracked == 0 and res.stats.pass_points['temporal_fwd'] == 0
+
+
+def test_gradient_matrix_sobel_is_opencv_sobel():
+    img = noise(3)
+    pts = np.array([[50.0, 40.0], [160.3, 170.6], [1.0, 2.0]])
+    a, b, c, ok = gradient_matrix(img, pts[:2], 13, sobel=True)
+    f = img.astype(np.float32)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    box = [cv2.boxFilter(g, -1, (13, 13), normalize=False) for g in (gx * gx, gx * gy, gy * gy)]
+    x, y = np.round(pts[:2]).astype(int).T
+    for got, want in zip((a, b, c), box):
+        np.testing.assert_allclose(got, want[y, x], rtol=1e-4)
+    assert ok.all()
+    # Without Sobel: the central differences of eigen_ratio (trace larger on pixel noise).
+    plain = gradient_matrix(img, pts[:2], 13)
+    assert np.all(plain[0] + plain[2] > a + c)
+
+
+def test_flow_edge_ratio_follows_the_flow_direction():
+    pts = np.array([[100.0, 100.0], [200.0, 150.0], [300.0, 200.0]])
+    edges = stripes((0.0, 0.0))  # vertical edges
+    along = flow_edge_ratio(edges, pts, np.tile([0.0, 5.0], (3, 1)), 13)
+    across = flow_edge_ratio(edges, pts, np.tile([-5.0, 0.0], (3, 1)), 13)
+    assert np.all(along < 0.02) and np.all(across > 50.0)
+    # Inverse of each other for opposite directions; a corner is near 1 either way.
+    np.testing.assert_allclose(along * across, 1.0, rtol=1e-9)
+    corner = flow_edge_ratio(render((0.0, 0.0)), pts, np.tile([3.0, 4.0], (3, 1)), 13)
+    assert np.all((corner > 0.2) & (corner < 5.0))
+    # No expected motion or no direction: the point passes any threshold.
+    still = flow_edge_ratio(edges, pts, np.array([[0.0, 0.5], [np.nan, 1.0], [0.0, 1.0]]), 13)
+    assert still[:2].tolist() == [np.inf, np.inf] and still[2] < 0.02
+    assert flow_edge_ratio(np.full((H, W), 77, np.uint8), pts, np.ones((3, 2)), 13).tolist() \
+        == [0.0] * 3
+    assert flow_edge_ratio(edges, np.zeros((0, 2)), np.zeros((0, 2)), 13).shape == (0,)
+
+
+def half_striped_pair(motion: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Rectified pair: texture left of x = W / 2, vertical stripes right of it, both moved."""
+    left_half = np.arange(W) < W // 2
+
+    def view(shift):  # stripes modulated enough to hold corners next to the texture
+        return np.where(left_half[None, :], render(shift), stripes(shift, modulation=12.0))
+    return view(motion), view((motion[0] - DISPARITY, motion[1]))
+
+
+def test_flow_aperture_checks_drop_features_on_edges_along_the_flow():
+    calib = rectified_calib()
+    margin = 15.0
+    # min_eigen_ratio 0: the isotropic aperture check would drop the stripes in any direction.
+    on = config(min_eigen_ratio=0.0)
+    off = config(min_eigen_ratio=0.0, min_flow_edge_ratio=0.0, min_flow_edge_ratio_tracked=0.0)
+    striped = {}
+    for name, cfg in (('on', on), ('off', off)):
+        tracker = StereoTracker(cfg, BucketingConfig())
+        # First pair: no prior, so no flow check at detection; both halves get features.
+        first = tracker.track(*half_striped_pair((0.0, 0.0)), calib)
+        n_striped = int(np.sum(first.features_left_raw[:, 0] > W / 2 + margin))
+        n_textured = int(np.sum(first.features_left_raw[:, 0] < W / 2 - margin))
+        assert n_striped > 10 and n_textured > 30
+        # Vertical motion, along the stripes, predicted by the prior.
+        res = tracker.track(*half_striped_pair((0.0, 2.0)), calib, prior=shift_prior((0.0, 2.0)))
+        assert res.stats.used_prior
+        kept = res.correspondences.prev_left
+        striped[name] = (n_striped, res.stats.failed['flow_aperture'],
+                         int(np.sum(kept[:, 0] > W / 2 + margin)),
+                         int(np.sum(res.features_left_raw[:, 0] > W / 2 + margin)))
+        assert np.sum(kept[:, 0] < W / 2 - margin) >= 0.9 * n_textured
+    n_striped, failed, tracked, after = striped['on']
+    # Every stripe feature is dropped before the temporal pass, and none is detected again.
+    assert failed >= n_striped and tracked == 0 and after == 0
+    n_striped, failed, tracked, after = striped['off']
+    assert failed == 0 and tracked > 0.5 * n_striped and after >= tracked
+
+    # Motion across the stripes: the same features pass.
+    tracker = StereoTracker(on, BucketingConfig())
+    tracker.track(*half_striped_pair((0.0, 0.0)), calib)
+    res = tracker.track(*half_striped_pair((2.0, 0.0)), calib, prior=shift_prior((2.0, 0.0)))
+    assert res.stats.failed['flow_aperture'] == 0
+    assert np.sum(res.correspondences.prev_left[:, 0] > W / 2 + margin) > 10
 
 
 def occluder_pair(boundary: int, far: float, near: float) -> tuple[np.ndarray, np.ndarray]:
