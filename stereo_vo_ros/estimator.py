@@ -10,7 +10,8 @@ new set of correspondences between the previous and the current stereo pair, run
    the papers: they keep features on moving vehicles out),
 3. RANSAC with 3-point samples (section III-D), its inliers on the ground plane of the previous
    pair counted ``ransac.ground_weight`` times (not in the papers; see
-   :mod:`~stereo_vo_ros.ground_plane`),
+   :mod:`~stereo_vo_ros.ground_plane`); after a reset of the velocity (the first pair, a loss,
+   a gap) eq. 14 assumes ``ransac.startup_outlier_ratio``, i.e. more samples (not in the papers),
 4. the final filter update on all inliers of the best sample (section III-E), then
    ``filter.robust_rounds`` updates with Cauchy weights from the residuals (not in the
    papers: the few badly tracked inliers are not symmetric and would bias the speed),
@@ -21,6 +22,7 @@ front end (the KLT tracker, a simulation, an .npz file) and imports no ROS.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import cv2
@@ -158,6 +160,19 @@ class MotionEstimator:
         self.mean = np.zeros(6) if velocity is None else np.asarray(velocity, np.float64).copy()
         self.cov = self.initial_covariance()
         self.outlier_streak = {}
+        #: No estimate since the reset: RANSAC draws more samples (``startup_outlier_ratio``).
+        self.fresh = True
+
+    def velocity_unknown(self) -> bool:
+        """
+        Whether the linear velocity is unknown: its largest std above a bound.
+
+        The bound is ``pipeline.prior_max_velocity_std`` (m/s); the velocity is unknown at the
+        start, after a loss and after a long gap, and while coasting on the prediction. The
+        pipeline then tracks without the motion prior.
+        """
+        std = np.sqrt(max(float(np.max(np.diag(self.cov)[:3])), 0.0))
+        return bool(std > self.config.pipeline.prior_max_velocity_std)
 
     def predict(self) -> tuple[np.ndarray, np.ndarray]:
         """Return the constant-velocity prediction (mean (6,), cov (6, 6)); no state change."""
@@ -267,7 +282,11 @@ class MotionEstimator:
                 on_ground = ground_mask(calib, sub.prev_left, sub.prev_right, cfg.ransac,
                                         self.ground_rng)
                 weights = np.where(on_ground, cfg.ransac.ground_weight, 1.0)
-            res = ransac(model, z, prior_mean, prior_cov, self.filter, noise_var, cfg.ransac,
+            rcfg = cfg.ransac
+            if self.fresh:
+                rcfg = dataclasses.replace(rcfg, outlier_ratio=max(
+                    rcfg.outlier_ratio, rcfg.startup_outlier_ratio))
+            res = ransac(model, z, prior_mean, prior_cov, self.filter, noise_var, rcfg,
                          self.rng, scale, weights)
             inl, hypotheses = res.inliers, res.hypotheses
             if cfg.ransac.adaptive_threshold and inl.sum() >= cfg.pipeline.min_inliers:
@@ -292,6 +311,7 @@ class MotionEstimator:
             inl = err < gate
         used[candidates[inl]] = True
         self.mean, self.cov = mean, cov
+        self.fresh = False
         self._count_outliers(corr.subset(watched), calib, dt, calib_cur, gate)
         return MotionEstimate(velocity=mean.copy(), covariance=cov.copy(),
                               T_prev_cur=transform_from_velocity(mean, dt), inliers=used,

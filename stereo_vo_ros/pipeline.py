@@ -228,9 +228,7 @@ class StereoOdometry:
         None while the velocity is unknown (linear std above
         ``pipeline.prior_max_velocity_std``): the tracker then searches with its full pyramid.
         """
-        cov = self.estimator.cov[:3, :3]
-        if np.sqrt(max(float(np.max(np.diag(cov))), 0.0)) > \
-                self.config.pipeline.prior_max_velocity_std:
+        if self.estimator.velocity_unknown():
             return None
         velocity = self.estimator.mean.copy()
 

@@ -404,7 +404,8 @@ def paper_config(filter_type: str = 'ispkf', ransac: bool = True, threshold: flo
     Return the estimator configuration of the paper's simulation experiments.
 
     Paper 1's estimator as published: the additions for moving vehicles (ground-plane weights,
-    outlier streaks) and the robust reweighting of the final update are switched off.
+    outlier streaks, more RANSAC samples after a reset) and the robust reweighting of the final
+    update are switched off.
 
     Parameters
     ----------
@@ -434,7 +435,7 @@ def paper_config(filter_type: str = 'ispkf', ransac: bool = True, threshold: flo
                  'filter.threshold_angular_deg': float(threshold),
                  'filter.pixel_noise_px': max(float(noise_px), MIN_FILTER_NOISE_PX),
                  'ransac.ground_weight': 1.0, 'ransac.max_outlier_streak': 0,
-                 'filter.robust_loss': 'none'}
+                 'ransac.startup_outlier_ratio': 0.0, 'filter.robust_loss': 'none'}
     if max_iterations is not None:
         overrides['filter.max_iterations'] = int(max_iterations)
     return base.replace(**overrides)

@@ -159,7 +159,7 @@ def test_ransac_recovers_motion_with_half_outliers(filter_type):
     corr = Correspondences(pl, pr, cl + rng.normal(0, noise, cl.shape),
                            cr + rng.normal(0, noise, cr.shape))
     cfg = _config(filter_type, **{'bucketing.enabled': False, 'ransac.enabled': True,
-                                  'ransac.outlier_ratio': 0.5,
+                                  'ransac.outlier_ratio': 0.5, 'ransac.startup_outlier_ratio': 0,
                                   'filter.threshold_velocity': 1e-3,
                                   'filter.threshold_angular_deg': 1e-3})
     res = MotionEstimator(cfg).estimate(corr, calib, 0.1)
@@ -174,6 +174,32 @@ def test_ransac_recovers_motion_with_half_outliers(filter_type):
     bad = MotionEstimator(cfg.replace(**{'ransac.enabled': False, 'filter.robust_loss': 'none'})
                           ).estimate(corr, calib, 0.1)
     assert np.abs(bad.velocity - y).max() > 2 * np.abs(res.velocity - y).max()
+
+
+def test_first_estimate_after_a_reset_draws_more_samples():
+    rng = np.random.default_rng(6)
+    calib = kitti_calibration()
+    y = np.array([0.1, 0.0, 20.0, 0.0, 0.01, 0.0])
+    pl, pr, cl, cr = observe(calib, random_scene(rng, 80), transform_from_velocity(y, 0.1))
+    corr = Correspondences(pl, pr, cl, cr)
+    cfg = Config().replace(**{'bucketing.enabled': False})
+    est = MotionEstimator(cfg)
+    startup = num_samples(0.99, cfg.ransac.startup_outlier_ratio, 3, cfg.ransac.max_hypotheses)
+    usual = num_samples(0.99, cfg.ransac.outlier_ratio, 3, cfg.ransac.max_hypotheses)
+    assert (startup, usual) == (300, 35)
+    counts = [est.estimate(corr, calib, 0.1).hypotheses for _ in range(2)]
+    est.coast()  # a coasting filter keeps its prediction: still the usual count
+    counts.append(est.estimate(corr, calib, 0.1).hypotheses)
+    est.reset()
+    counts.append(est.estimate(corr, calib, 0.1).hypotheses)
+    assert counts == [startup, usual, usual, startup]
+    np.testing.assert_allclose(est.mean[:3], y[:3], atol=0.05)
+    # A failed first estimate leaves the estimator fresh; a ratio below outlier_ratio is moot.
+    est.reset()
+    assert est.estimate(corr.subset(np.arange(3)), calib, 0.1).status is not TrackingStatus.OK
+    assert est.estimate(corr, calib, 0.1).hypotheses == startup
+    low = MotionEstimator(cfg.replace(**{'ransac.startup_outlier_ratio': 0.2}))
+    assert low.estimate(corr, calib, 0.1).hypotheses == usual
 
 
 def test_adaptive_gate_follows_the_residual_scale():
