@@ -169,8 +169,7 @@ class StereoOdometry:
         if calib_changed:
             LOG.info('calibration changed: features re-detected')
             self.tracker.reset()
-        prior = None if calib_changed or self._lost_time > 0 else \
-            self._prior(prev_calib, calib, dt)
+        prior = None if calib_changed else self._prior(prev_calib, calib, dt)
         track = self._track(frame, prior, timings)
         corr = track.correspondences if track is not None else None
         t0 = time.perf_counter()

@@ -201,6 +201,12 @@ def test_tracker_searches_without_a_prior_while_the_velocity_is_unknown():
     vo.estimator.cov = np.eye(6) * 0.01
     predict = vo._prior(calib, calib, DT)
     assert callable(predict)
+    # One coasted pair (no estimate) keeps the prediction; a second one loses it.
+    vo.estimator.mean = np.array([0.0, 0.0, 25.0, 0.0, 0.0, 0.0])
+    vo.estimator.coast()
+    assert callable(vo._prior(calib, calib, DT))
+    vo.estimator.coast()
+    assert vo._prior(calib, calib, DT) is None
 
 
 def test_rendered_highway_behind_buses_starts_at_the_true_speed():
