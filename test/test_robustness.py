@@ -686,11 +686,13 @@ def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(mak
     assert len(arrivals) >= 3, (len(arrivals), k, period_s)  # still processing while flooded
     # The node's own latency (arrival -> published) stays about one processing time: the one
     # of the flood, which shares this process' GIL with the publisher and the executor (one
-    # run of 2026-11-23 took 260 ms a pair instead of 13 ms, and 973 ms of latency). A queue
-    # would grow with the pairs sent instead (late <= 6 above checks that directly).
+    # run of 2026-11-23 took 260 ms a pair instead of 13 ms, and 973 ms of latency; one of
+    # 2026-11-25 620 ms at 17 ms a pair). A queue would grow with the flood instead, to seconds
+    # (late <= 6 above checks that directly), so the bound is a fifth of the flood's duration
+    # (at least 1 s), not a fixed time that asserts the machine's load.
     flooded_s = float(rig.value('processing_ms')) * 1e-3
-    assert float(rig.value('latency_ms')) < max(10 * period_s, 4 * flooded_s, 0.5) * 1e3, \
-        rig.status()
+    bound_s = max(10 * period_s, 4 * flooded_s, 0.2 * (flood_end - start))
+    assert float(rig.value('latency_ms')) < bound_s * 1e3, rig.status()
     rig.assert_logged('stereo pair dropped: pairs arrive faster than they are processed', WARN)
     assert watch.problems == []
     rig.assert_healthy()
