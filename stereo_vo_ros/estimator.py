@@ -168,8 +168,8 @@ class MotionEstimator:
         Whether the linear velocity is unknown: its largest std above a bound.
 
         The bound is ``pipeline.prior_max_velocity_std`` (m/s); the velocity is unknown at the
-        start, after a loss and after a long gap, and while coasting on the prediction. The
-        pipeline then tracks without the motion prior.
+        start, after a long loss or gap, and after two coasted pairs (one keeps it known at the
+        defaults). The pipeline then tracks without the motion prior.
         """
         std = np.sqrt(max(float(np.max(np.diag(self.cov)[:3])), 0.0))
         return bool(std > self.config.pipeline.prior_max_velocity_std)

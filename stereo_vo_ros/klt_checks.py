@@ -252,14 +252,15 @@ def eigen_ratio(img: np.ndarray, pts: np.ndarray, win_size_px: int) -> np.ndarra
 
 
 def flow_edge_ratio(img: np.ndarray, pts: np.ndarray, flow: np.ndarray,
-                    win_size_px: int, min_flow_px: float = 1.0, sobel: bool = True
-                    ) -> np.ndarray:
+                    win_size_px: int, min_flow_px: float = 1.0) -> np.ndarray:
     """
     Gradient energy of the KLT window along the expected flow over that across it.
 
     With ``u`` the unit flow direction and ``v`` its normal, the ratio is ``u^T G u / v^T G v``
-    (``G`` from ``gradient_matrix``): about 0 when the window holds an edge or a line parallel
-    to the flow, 1 for an isotropic corner, large for an edge across the flow. A window that
+    (``G`` from ``gradient_matrix`` with Sobel gradients: with plain central differences the
+    pixel steps of a thin line drawn obliquely count as structure along it): about 0 when the
+    window holds an edge or a line parallel to the flow, 1 for an isotropic corner, large for
+    an edge across the flow. A window that
     is edge-like along its own flow fixes the match across the flow only; along it the match
     slides, and the slide looks like a change of speed, so RANSAC keeps it. On a road lane
     lines and their dashes point at the focus of expansion, i.e. along the flow: on the
@@ -279,9 +280,6 @@ def flow_edge_ratio(img: np.ndarray, pts: np.ndarray, flow: np.ndarray,
     min_flow_px : float
         Below this expected displacement (pixels) the direction is meaningless and the ratio
         is ``inf`` (the point passes any threshold); likewise for a non-finite flow.
-    sobel : bool
-        Sobel gradients (see ``gradient_matrix``): the pixel steps of a thin line drawn
-        obliquely would otherwise count as structure along it.
 
     Returns
     -------
@@ -292,7 +290,7 @@ def flow_edge_ratio(img: np.ndarray, pts: np.ndarray, flow: np.ndarray,
     flow = np.asarray(flow, np.float64).reshape(-1, 2)
     if len(flow) == 0:
         return np.zeros(0)
-    a, b, c, _ = gradient_matrix(img, pts, win_size_px, sobel)
+    a, b, c, _ = gradient_matrix(img, pts, win_size_px, sobel=True)
     norm = np.linalg.norm(flow, axis=1)
     moving = np.isfinite(norm) & (norm >= min_flow_px)
     u = np.where(moving[:, None], flow, [1.0, 0.0]) / np.where(moving, norm, 1.0)[:, None]
