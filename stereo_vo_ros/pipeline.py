@@ -25,6 +25,7 @@ from .camera import StereoCalibration
 from .config import Config
 from .errors import ImageError
 from .estimator import MotionEstimator
+from .ground_plane import fit_ground_plane, road_speed, triangulate
 from .motion import rotation_from_rates, TransferModel, transform_from_velocity
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
 from .tracker import StereoTracker
@@ -35,6 +36,11 @@ LOG = logging.getLogger(__name__)
 RESTART_JUMP_S = 1.0
 #: Position / angle variance (m^2, rad^2) added per second while LOST.
 LOST_VARIANCE_RATE = (1.0, np.deg2rad(10.0) ** 2)
+#: Road speed search: slower than this (m/s) counts as at rest, and tracking keeps no prior.
+ROAD_MIN_SPEED = 1.0
+#: Road speed search: the best speed's road difference over the one at rest must be below
+#: this (a clear minimum; about 0.2-0.5 on the rendered highways, 1 at rest).
+ROAD_MAX_CONTRAST = 0.8
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -105,6 +111,7 @@ class StereoOdometry:
         self._lost_time = 0.0
         self._last_dt = 0.1
         self._status = TrackingStatus.INITIALIZING
+        self._road_rng = np.random.default_rng(0)
         self.tracker.reset()
         self.estimator.reset()
 
@@ -170,6 +177,10 @@ class StereoOdometry:
             LOG.info('calibration changed: features re-detected')
             self.tracker.reset()
         prior = None if calib_changed else self._prior(prev_calib, calib, dt)
+        if prior is None and not calib_changed:
+            t0 = time.perf_counter()
+            prior = self._road_prior(frame, calib, dt)
+            timings['road_search'] = (time.perf_counter() - t0) * 1e3
         track = self._track(frame, prior, timings)
         corr = track.correspondences if track is not None else None
         t0 = time.perf_counter()
@@ -229,7 +240,38 @@ class StereoOdometry:
         """
         if self.estimator.velocity_unknown():
             return None
-        velocity = self.estimator.mean.copy()
+        return self._predictor(prev_calib, calib, dt, self.estimator.mean.copy())
+
+    def _road_prior(self, frame: StereoFrame, calib: StereoCalibration, dt: float):
+        """
+        Return a forward-motion prior from the road (``ground_plane.road_speed``), or None.
+
+        Used while the velocity is unknown (``pipeline.road_speed_search``): the ground plane
+        of the previous pair's features, then the forward speed from -10 m/s to
+        ``pipeline.max_speed`` that aligns the road best. None without a plane, on raw input,
+        at rest (below ``ROAD_MIN_SPEED``) or without a clear minimum (``ROAD_MAX_CONTRAST``).
+        """
+        pcfg = self.config.pipeline
+        prev = self.tracker.previous_left()
+        if not pcfg.road_speed_search or prev is None or calib.kind != 'rectified':
+            return None
+        left, right = self.tracker.feature_points()
+        plane = fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
+                                 self._road_rng)
+        if plane is None:
+            return None
+        speeds = np.arange(-10.0, pcfg.max_speed + 0.5, 1.0)
+        found = road_speed(prev, self.tracker.as_grey(frame.left), calib, plane, dt, speeds)
+        if not (abs(found.speed) >= ROAD_MIN_SPEED and found.contrast <= ROAD_MAX_CONTRAST):
+            return None
+        LOG.info('velocity unknown: tracking with %.0f m/s forward from the road', found.speed)
+        return self._predictor(calib, calib, dt,
+                               np.array([0.0, 0.0, found.speed, 0.0, 0.0, 0.0]))
+
+    @staticmethod
+    def _predictor(prev_calib: StereoCalibration, calib: StereoCalibration, dt: float,
+                   velocity: np.ndarray):
+        """Return the constant-velocity prior of one velocity (6,) (m/s, rad/s)."""
 
         def predict(prev_left: np.ndarray, prev_right: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:

@@ -478,6 +478,19 @@ class StereoTracker:
         return len(self._feats)
 
     # -- public API ---------------------------------------------------------------------
+    def previous_left(self) -> np.ndarray | None:
+        """Return the left image of the last pair as tracked ((H, W) uint8, read-only) or None."""
+        return None if self._prev is None else self._prev[0]
+
+    def feature_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return ideal left and right pixels (N, 2) of the features alive after the last pair."""
+        f = self._feats
+        return f.left_ideal.astype(np.float64), f.right_ideal.astype(np.float64)
+
+    def as_grey(self, img: np.ndarray) -> np.ndarray:
+        """Return an image as ``track`` sees it: (H, W) uint8, uint16 scaled by the bit depth."""
+        return _as_grey_u8(img, 'left', self._bits)[0]
+
     def track(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
               prior: Prior | None = None) -> TrackResult:
         """

@@ -5,7 +5,7 @@ import pytest
 
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.estimator import MotionEstimator
-from stereo_vo_ros.ground_plane import fit_ground_plane, ground_mask, triangulate
+from stereo_vo_ros.ground_plane import fit_ground_plane, ground_mask, road_speed, triangulate
 from stereo_vo_ros.motion import transform_from_velocity
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, TrackingStatus
@@ -225,3 +225,64 @@ def test_rendered_highway_behind_buses_starts_at_the_true_speed():
         prev = (res.T_world_cam.copy(), fr.T_world_cam)
     assert np.median(ratios) > 0.95
     assert min(ratios) > 0.8
+
+
+def render_pairs(preset, seed, frames):
+    spec = SequenceSpec.preset(preset, seed=seed)
+    renderer = StereoRenderer(spec)
+    return renderer.calibration, [renderer.render(i) for i in range(frames)]
+
+
+@pytest.mark.parametrize('seed', [15, 35])
+def test_road_alignment_finds_the_forward_speed_behind_vehicles(seed):
+    """Seeds 15 and 35 start behind buses; their first estimate used to take the buses' speed."""
+    calib, (f0, f1) = render_pairs('highway', seed, 2)
+    cfg = Config()
+    vo = StereoOdometry(cfg)
+    vo.process(f0.stereo_frame(calib))
+    left, right = vo.tracker.feature_points()
+    plane = fit_ground_plane(triangulate(calib, left, right), cfg.ransac,
+                             np.random.default_rng(0))
+    assert plane is not None
+    assert plane[1] == pytest.approx(1.65, abs=0.1)  # the renderer's camera height
+    true_speed = np.linalg.norm(f1.T_world_cam[:3, 3] - f0.T_world_cam[:3, 3]) / DT
+    found = road_speed(f0.left, f1.left, calib, plane, DT, np.arange(-10.0, 61.0))
+    assert abs(found.speed - true_speed) <= 1.0
+    assert found.contrast < 0.8
+    # The same image twice: the road is best aligned at rest, and the pipeline adds no prior.
+    at_rest = road_speed(f0.left, f0.left, calib, plane, DT, np.arange(-10.0, 61.0))
+    assert at_rest.speed == 0.0 and at_rest.contrast == 1.0
+    assert vo._road_prior(f0.stereo_frame(calib), calib, DT) is None
+    moving = vo._road_prior(f1.stereo_frame(calib), calib, DT)
+    assert callable(moving)
+
+
+def test_road_alignment_needs_a_road():
+    calib = kitti_calibration()
+    flat = np.full((calib.size[1], calib.size[0]), 128, np.uint8)
+    plane = (np.array([0.0, 1.0, 0.0]), 1.65)
+    # A textureless road cannot be aligned better than at rest: no clear minimum.
+    found = road_speed(flat, flat, calib, plane, DT, np.arange(-10.0, 61.0))
+    assert not found.contrast < 1.0
+    # Ground 100 m below the camera: no pixel sees it within 40 m, nothing to compare.
+    none = road_speed(flat, flat, calib, (np.array([0.0, 1.0, 0.0]), 100.0), DT,
+                      np.arange(0.0, 5.0))
+    assert np.isnan(none.speed) and np.isnan(none.contrast)
+
+
+@pytest.mark.parametrize('search', [True, False])
+def test_rendered_highway_behind_buses_at_speed_starts_with_the_road(search):
+    """Seed 35: without the road alignment the first estimate took the buses' motion."""
+    calib, frames = render_pairs('highway', 35, 10)
+    vo = StereoOdometry(Config().replace(**{'pipeline.road_speed_search': search}))
+    ratios, prev = [], None
+    for fr in frames:
+        res = vo.process(fr.stereo_frame(calib))
+        if prev is not None:
+            true_step = np.linalg.norm(fr.T_world_cam[:3, 3] - prev[1][:3, 3])
+            ratios.append(np.linalg.norm(res.T_world_cam[:3, 3] - prev[0][:3, 3]) / true_step)
+        prev = (res.T_world_cam.copy(), fr.T_world_cam)
+    if search:
+        assert np.median(ratios) > 0.95 and min(ratios) > 0.8
+    else:
+        assert np.median(ratios) < 0.5  # the failure the search exists for
