@@ -205,8 +205,8 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
     farther than KLT can follow (its low-contrast texture worse than most), while vehicles
     keeping pace with the camera track well. On rendered highway seed 35, only 5 of 24 road
     features of the first pair were right and the first estimate took the vehicles' 5 m/s
-    for the true 27 m/s. Aligning the whole road at once finds the speed to within about
-    0.5 m/s on the rendered highways (seeds 0, 3, 9, 15, 35 at frames 0 and 100), and the
+    for the true 27 m/s. Aligning the whole road at once finds the speed to within
+    0.6 m/s on the rendered highways (seeds 0, 3, 9, 15, 35 at frames 0 and 100), and the
     speed then predicts where the features went. The sign convention: a positive speed moves
     the camera forward (+z).
 
