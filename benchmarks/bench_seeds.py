@@ -17,7 +17,7 @@ Usage::
     python benchmarks/bench_seeds.py [--preset highway] [--seeds 0-23] [--jobs 2]
         [--config FILE] [--set ransac.ground_weight=8 ...] [--frames N] [--cache DIR]
 
-``--cache DIR`` keeps each render as ``DIR/<preset>_<seed>_<frames>.npz`` (about 200 MB for a
+``--cache DIR`` keeps each render as ``DIR/<preset>_<seed>_<frames>.npz`` (about 280 MB for a
 300-frame scene) so that another configuration can be scored on the same scenes without
 rendering again. Each worker uses one thread for OpenCV and BLAS.
 """
