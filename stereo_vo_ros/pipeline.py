@@ -248,13 +248,15 @@ class StereoOdometry:
 
         Used while the velocity is unknown (``pipeline.road_speed_search``): the ground plane
         of the previous pair's features, then the forward speed from -10 m/s to
-        ``pipeline.max_speed`` that aligns the road best. None without a plane, on raw input,
-        at rest (below ``ROAD_MIN_SPEED``) or without a clear minimum (``ROAD_MAX_CONTRAST``).
+        ``pipeline.max_speed`` that aligns the road best. None when off (or the tracker uses
+        no prior), without a plane, on raw input, at rest (below ``ROAD_MIN_SPEED``) or
+        without a clear minimum (``ROAD_MAX_CONTRAST``).
         """
         pcfg = self.config.pipeline
         prev = self.tracker.previous_left()
-        if not pcfg.road_speed_search or prev is None or calib.kind != 'rectified':
-            return None
+        if not (pcfg.road_speed_search and self.config.tracker.use_motion_prior) or \
+                prev is None or calib.kind != 'rectified':
+            return None  # (the tracker would ignore a prior without use_motion_prior)
         left, right = self.tracker.feature_points()
         plane = fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
                                  self._road_rng)
