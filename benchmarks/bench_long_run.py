@@ -43,7 +43,8 @@ from rclpy.node import Node
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros.ros.player import StereoPairPublisher  # noqa: E402
-from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # noqa: E402
+from stereo_vo_ros.ros.process import (  # noqa: E402
+    spinning, start_node, stop_node, with_pythonpath)
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -135,8 +136,8 @@ def main() -> int:
     feeder = Feeder(context, frames, P0, P1)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(feeder)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spin = spinning(executor)
+    spin.__enter__()
     samples = []  # (pairs sent, node RSS MB)
     stalls = 0
     try:
@@ -185,6 +186,7 @@ def main() -> int:
                 'tracking_state', 'pairs_received', 'pairs_processed', 'dropped_pairs',
                 'path_length', 'restarts', 'warnings', 'errors', 'non_finite_skipped')))
     finally:
+        spin.__exit__(None, None, None)
         executor.shutdown()
         feeder.destroy_node()
         rclpy.try_shutdown(context=context)

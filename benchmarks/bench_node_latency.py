@@ -53,7 +53,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros.ros import conversions as conv  # noqa: E402
 from stereo_vo_ros.ros.player import StereoPairPublisher  # noqa: E402
-from stereo_vo_ros.ros.process import start_node, stop_node, with_pythonpath  # noqa: E402
+from stereo_vo_ros.ros.process import (  # noqa: E402
+    spinning, start_node, stop_node, with_pythonpath)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 1 + (os.getpid() * 13 + 5) % 200
@@ -176,8 +177,8 @@ def main() -> int:
     bench = Bench(context, left, right, P0, P1, period)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(bench)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    spin = spinning(executor)
+    spin.__enter__()
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (
@@ -234,6 +235,7 @@ def main() -> int:
         print(f'highest sustained input rate: {sustained:g} Hz (>= 97 % of the pairs give '
               f'odometry)')
     finally:
+        spin.__exit__(None, None, None)
         executor.shutdown()
         bench.destroy_node()
         rclpy.try_shutdown(context=context)

@@ -26,3 +26,31 @@ def test_demo_end_to_end(tmp_path):
     assert metrics['ate_rmse_m'] < 0.5
     assert (tmp_path / 'trajectory.png').stat().st_size > 10_000
     assert read_poses(summary['poses_tum']).stamps is not None
+
+
+def test_spinning_delivers_callbacks_and_stops_before_shutdown():
+    """The demo's background spinner runs callbacks in the block and is joined at its end."""
+    import threading
+
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    from stereo_vo_ros.ros.process import spinning
+
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node('spin_test', context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        fired = threading.Event()
+        node.create_timer(0.01, fired.set)
+        with spinning(executor, period_s=0.05) as thread:
+            assert fired.wait(5.0)
+            assert thread.is_alive()
+        assert not thread.is_alive()  # joined before the executor and rclpy shut down
+        executor.shutdown()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

@@ -68,7 +68,7 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
     from .conversions import camera_pose_from_base_pose, nanoseconds_from_time, \
         transform_from_xyz_rpy
     from .player import BagPlayer
-    from .process import node_process
+    from .process import node_process, spinning
 
     t_start = time.monotonic()
     config = config or Config()
@@ -108,35 +108,34 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
             node.create_subscription(Odometry, 'odom', on_odom, reliable)
             executor = SingleThreadedExecutor()
             executor.add_node(node)
-            spinner = threading.Thread(target=executor.spin, daemon=True)
-            spinner.start()
-            player = BagPlayer(node, bag, topics=topics, rate=None, publish_clock=True)
-            if not player.wait_for_subscribers(30.0, topics=image_topics):
-                raise DatasetError(f'the node did not subscribe to {image_topics} within 30 s; '
-                                   f'see {log_path}')
-            time.sleep(0.5)  # let the node see the publishers (discovery both ways)
-            published: dict[int, int] = {}
-            deadline = t_rendered + timeout_s
-            stop = threading.Event()
+            with spinning(executor):
+                player = BagPlayer(node, bag, topics=topics, rate=None, publish_clock=True)
+                if not player.wait_for_subscribers(30.0, topics=image_topics):
+                    raise DatasetError(f'the node did not subscribe to {image_topics} within '
+                                       f'30 s; see {log_path}')
+                time.sleep(0.5)  # let the node see the publishers (discovery both ways)
+                published: dict[int, int] = {}
+                deadline = t_rendered + timeout_s
+                stop = threading.Event()
 
-            def pace(topic: str, stamp_ns: int, msg: Any) -> None:
-                if topic not in image_topics:
-                    return
-                key = nanoseconds_from_time(msg.header.stamp)
-                published[key] = published.get(key, 0) + 1
-                if published[key] < 2:
-                    return
-                wait_until = min(time.monotonic() + per_frame_timeout_s, deadline)
-                with got:
-                    while key not in received and time.monotonic() < wait_until:
+                def pace(topic: str, stamp_ns: int, msg: Any) -> None:
+                    if topic not in image_topics:
+                        return
+                    key = nanoseconds_from_time(msg.header.stamp)
+                    published[key] = published.get(key, 0) + 1
+                    if published[key] < 2:
+                        return
+                    wait_until = min(time.monotonic() + per_frame_timeout_s, deadline)
+                    with got:
+                        while key not in received and time.monotonic() < wait_until:
+                            got.wait(0.05)
+                    if time.monotonic() >= deadline:
+                        stop.set()
+                stats = player.play(stop=stop, on_message=pace)
+                with got:  # the last odometry may still be on its way
+                    end = time.monotonic() + per_frame_timeout_s
+                    while len(received) < len(published) and time.monotonic() < end:
                         got.wait(0.05)
-                if time.monotonic() >= deadline:
-                    stop.set()
-            stats = player.play(stop=stop, on_message=pace)
-            with got:  # the last odometry may still be on its way
-                end = time.monotonic() + per_frame_timeout_s
-                while len(received) < len(published) and time.monotonic() < end:
-                    got.wait(0.05)
             executor.shutdown(timeout_sec=1.0)
             node.destroy_node()
         finally:

@@ -5,6 +5,9 @@ The node runs as a user runs it: through the installed ``stereo_vo_node`` entry 
 there is one next to the running interpreter or on ``PATH``, else ``python -m
 stereo_vo_ros.ros.node``. It is stopped as ``ros2 run`` stops it: SIGINT, then a kill if it
 has not exited within the timeout.
+
+The processes that talk to it (the demo, the benchmarks) spin their own executor in a background
+thread with :func:`spinning`.
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ import shutil
 import signal
 import subprocess
 import sys
-from typing import IO, Iterator, Mapping, Sequence
+import threading
+from typing import Any, IO, Iterator, Mapping, Sequence
 
 #: Name of the node's console script.
 NODE_EXECUTABLE = 'stereo_vo_node'
@@ -100,3 +104,35 @@ def node_process(ros_args: Sequence[str] = (), env: Mapping[str, str] | None = N
         yield proc
     finally:
         stop_node(proc, timeout_s)
+
+
+@contextlib.contextmanager
+def spinning(executor: Any, period_s: float = 0.1) -> Iterator[threading.Thread]:
+    """
+    Spin an rclpy executor in a background thread for the duration of a ``with`` block.
+
+    The thread calls ``executor.spin_once`` until the block ends, then it is joined, before the
+    caller shuts the executor and rclpy down. A free-running ``executor.spin`` thread that is
+    still waiting when rclpy shuts down can keep spinning at full CPU and starve the calling
+    thread of the GIL: a fresh-clone CI run of the demo test hung that way for minutes,
+    waiting for the node process to be reaped.
+
+    Yields
+    ------
+    threading.Thread
+        The spinning thread.
+
+    """
+    done = threading.Event()
+
+    def spin() -> None:
+        while not done.is_set():
+            executor.spin_once(timeout_sec=period_s)
+
+    thread = threading.Thread(target=spin, name='executor_spin', daemon=True)
+    thread.start()
+    try:
+        yield thread
+    finally:
+        done.set()
+        thread.join(timeout=10.0 * period_s + 5.0)
