@@ -295,6 +295,61 @@ class PipelineConfig:
 
 
 @dataclass
+class RoadConfig:
+    """Direct alignment of the road plane, fused with the feature estimate (not in the papers)."""
+
+    enabled: bool = _f(
+        True, 'Align the road pixels of the previous and the current left image over the '
+        'motion (plane of the previous pair refined by aligning its left and right images) '
+        'and fuse the result with the filter estimate (rectified input; skipped without an '
+        'admissible road plane or when the two disagree beyond gate_chi2). On a fast road '
+        'the few road features track worst of all, while every road pixel carries the '
+        'forward speed.', dynamic=True)
+    motion: str = _f(
+        'longitudinal', 'What the road measures: longitudinal (forward and vertical '
+        "translation and pitch; the lateral translation, yaw and roll stay the features') or "
+        'full (all six). On the rendered highway the road alone hardly tells the lateral '
+        'translation from the yaw: refined together they drifted and dragged the forward '
+        'translation along.', choices=('longitudinal', 'full'), dynamic=True)
+    levels: int = _f(
+        2, 'Image pyramid levels, coarse to fine (1: the input size only).', 1, 5, dynamic=True)
+    pixel_step: int = _f(
+        5, 'Every n-th pixel of the road in both directions is compared (pixels of each '
+        'pyramid level).', 1, 64, dynamic=True)
+    blur_px: float = _f(
+        1.0, 'Gaussian blur of every pyramid level before the alignment (its pixels).', 0.0,
+        10.0, dynamic=True)
+    min_depth_m: float = _f(
+        4.0, 'Road nearer than this is not compared (m).', 0.5, 100.0, dynamic=True)
+    max_depth_m: float = _f(
+        35.0, 'Road farther than this is not compared (m).', 1.0, 500.0, dynamic=True)
+    max_lateral_m: float = _f(
+        6.0, 'Road farther than this to either side of the optical axis is not compared (m): '
+        'parked cars, kerbs and pavements stay out (KITTI clips: end drift 0.91 / 4.64 % '
+        'without the bound, 0.77 / 3.75 % with 6 m).',
+        0.5, 100.0, dynamic=True)
+    min_pixels: int = _f(
+        1500, 'Fewest road pixels an alignment needs at the input size (a quarter of it at the '
+        'next pyramid level, and so on).', 10, 10000000, dynamic=True)
+    stereo_iterations: int = _f(
+        1, 'Gauss-Newton iterations of the plane (left-right) on each pyramid level; the plane '
+        'is refined again at every pair, starting from the last one.', 1, 100, dynamic=True)
+    coarse_iterations: int = _f(
+        5, 'Gauss-Newton iterations of the motion (previous-current) on each pyramid level '
+        'above the input size.', 1, 100, dynamic=True)
+    motion_iterations: int = _f(
+        3, 'Gauss-Newton iterations of the motion (previous-current) at the input size.', 1,
+        100, dynamic=True)
+    covariance_inflation: float = _f(
+        16.0, 'Factor on the covariance of the aligned motion (neighbouring pixels are not '
+        'independent).', 1.0, 1e6, dynamic=True)
+    gate_chi2: float = _f(
+        16.3, 'Fuse only when the squared Mahalanobis distance between the road motion and the '
+        'feature estimate, over the measured components, is below this (16.3: the 99.9 % '
+        'point of the 3 longitudinal components).', 0.0, 1e9, dynamic=True)
+
+
+@dataclass
 class RosConfig:
     """ROS 2 adapter: frames, topics, synchronisation and outputs."""
 
@@ -334,6 +389,7 @@ class Config:
     filter: FilterConfig = field(default_factory=FilterConfig)  # noqa: A003
     ransac: RansacConfig = field(default_factory=RansacConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    road: RoadConfig = field(default_factory=RoadConfig)
     ros: RosConfig = field(default_factory=RosConfig)
 
     def __post_init__(self) -> None:
@@ -411,6 +467,8 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f'tracker.win_size_px must be odd, got {cfg.tracker.win_size_px}')
     if cfg.tracker.min_disparity_px >= cfg.tracker.max_disparity_px:
         raise ConfigError('tracker.min_disparity_px must be below tracker.max_disparity_px')
+    if cfg.road.min_depth_m >= cfg.road.max_depth_m:
+        raise ConfigError('road.min_depth_m must be below road.max_depth_m')
 
 
 def from_dict(data: dict[str, Any] | None) -> Config:

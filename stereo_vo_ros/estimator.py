@@ -317,6 +317,46 @@ class MotionEstimator:
                               T_prev_cur=transform_from_velocity(mean, dt), inliers=used,
                               iterations=iters, status=TrackingStatus.OK, hypotheses=hypotheses)
 
+    def fuse(self, velocity: np.ndarray, covariance: np.ndarray, gate_chi2: float,
+             components: np.ndarray | None = None) -> bool:
+        """
+        Fuse an independent measurement of (some components of) the velocity state.
+
+        A Kalman update with ``H`` the rows ``components`` of the identity.
+
+        Parameters
+        ----------
+        velocity : np.ndarray
+            (6,) measured state (m/s, rad/s, previous left frame), e.g. the road alignment's.
+        covariance : np.ndarray
+            (6, 6) its covariance.
+        gate_chi2 : float
+            The measurement is rejected (state unchanged) when its squared Mahalanobis distance
+            to the current estimate, over both covariances, is not below this.
+        components : np.ndarray, optional
+            Indices (k,) of the state components measured (default all six).
+
+        Returns
+        -------
+        bool: whether it was fused.
+
+        """
+        idx = np.arange(6) if components is None else np.asarray(components, int)
+        innovation = np.asarray(velocity, np.float64)[idx] - self.mean[idx]
+        S = self.cov[np.ix_(idx, idx)] + np.asarray(covariance)[np.ix_(idx, idx)]
+        PHt = self.cov[:, idx]  # P H^T (6, k)
+        try:
+            m2 = float(innovation @ np.linalg.solve(S, innovation))
+            gain = np.linalg.solve(S, PHt.T).T  # P H^T S^-1 (S symmetric)
+        except np.linalg.LinAlgError:
+            return False
+        if not (np.isfinite(m2) and m2 < gate_chi2):
+            return False
+        self.mean = self.mean + gain @ innovation
+        cov = self.cov - gain @ PHt.T
+        self.cov = 0.5 * (cov + cov.T)
+        return True
+
     def _final_update(self, prior_mean: np.ndarray, prior_cov: np.ndarray,
                       model: TransferModel, z: np.ndarray, noise_var: np.ndarray,
                       scale: np.ndarray, inl: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

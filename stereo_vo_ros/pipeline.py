@@ -3,7 +3,8 @@ The images-to-odometry pipeline: one object, one call per stereo pair.
 
 ``StereoOdometry(config).process(frame) -> OdometryResult`` runs
 
-    tracker (paper 2) -> bucketing -> RANSAC + ISPKF (paper 1) -> pose integration
+    tracker (paper 2) -> bucketing -> RANSAC + ISPKF (paper 1) -> road alignment (fused)
+    -> pose integration
 
 and handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
 inflated covariance for at most ``pipeline.max_lost_time_s``), calibration that changes between
@@ -28,6 +29,7 @@ from .estimator import MotionEstimator
 from .ground_plane import fit_ground_plane, road_speed, triangulate
 from .motion import rotation_from_rates, TransferModel, transform_from_velocity
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
+from .road_alignment import RoadAligner, RoadImages, RoadPlane
 from .tracker import StereoTracker
 
 LOG = logging.getLogger(__name__)
@@ -99,6 +101,7 @@ class StereoOdometry:
         self.config = config or Config()
         self.tracker = StereoTracker(self.config.tracker, self.config.bucketing)
         self.estimator = MotionEstimator(self.config)
+        self.road = RoadAligner(self.config.road, self.config.ransac)
         self.reset()
 
     # -- control -----------------------------------------------------------------------
@@ -112,6 +115,9 @@ class StereoOdometry:
         self._last_dt = 0.1
         self._status = TrackingStatus.INITIALIZING
         self._road_rng = np.random.default_rng(0)
+        #: The previous pair prepared for the road alignment, and its road plane.
+        self._road_images: RoadImages | None = None
+        self._road_plane: RoadPlane | None = None
         self.tracker.reset()
         self.estimator.reset()
 
@@ -130,6 +136,7 @@ class StereoOdometry:
         self.tracker.cfg = config.tracker
         self.tracker.bucketing_cfg = config.bucketing
         self.estimator.config = config
+        self.road.cfg, self.road.ransac = config.road, config.ransac
 
     @property
     def status(self) -> TrackingStatus:
@@ -165,6 +172,7 @@ class StereoOdometry:
         timings: dict[str, float] = {}
         if prev_stamp is None:
             self._track(frame, None, timings)
+            self._road_step(frame, None, 0.0, False, timings)
             self._commit(stamp, calib, TrackingStatus.INITIALIZING)
             return self._result(stamp, TrackingStatus.INITIALIZING, t_start, timings,
                                 message='first frame: features detected')
@@ -210,12 +218,13 @@ class StereoOdometry:
                 self.estimator.reset()
                 status = TrackingStatus.LOST
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
+        road_fused = self._road_step(frame, prev_calib, dt, ok and not calib_changed, timings)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._commit(stamp, calib, status)
         return self._result(stamp, status, t_start, timings, corr=corr,
                             inliers=est.inliers if est is not None else None,
                             iterations=est.iterations if est is not None else 0,
-                            message=message)
+                            message=message, road_fused=road_fused)
 
     # -- steps -------------------------------------------------------------------------
     def _check_velocity_state(self) -> None:
@@ -230,6 +239,49 @@ class StereoOdometry:
             why = 'non-finite values'
         LOG.warning('velocity state is not a valid Gaussian (%s): velocity re-initialised', why)
         self.estimator.reset()
+
+    def _road_step(self, frame: StereoFrame, prev_calib: StereoCalibration | None, dt: float,
+                   measure: bool, timings: dict[str, float]) -> bool:
+        """
+        Road alignment (``road``, :mod:`~stereo_vo_ros.road_alignment`; not in the papers).
+
+        With ``measure`` (the features gave an estimate, same calibration) the road of the
+        previous left image is aligned with the current one, starting from the filter's motion,
+        and fused with it (``MotionEstimator.fuse``). Then the road plane of the current pair is
+        refined for the next pair, starting from the previous plane moved by the motion, or
+        from the plane of the current features. Rectified input only. Returns whether the
+        road motion was fused.
+        """
+        calib = frame.calibration
+        if not self.config.road.enabled or calib.kind != 'rectified':
+            self._road_images = self._road_plane = None
+            return False
+        t0 = time.perf_counter()
+        prev_images, plane = self._road_images, self._road_plane
+        images = self.road.prepare(self.tracker.as_grey(frame.left),
+                                   self.tracker.as_grey(frame.right),
+                                   self.road.first_row(calib, plane))
+        T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
+        fused = False
+        if measure and prev_images is not None and plane is not None and \
+                calib.same_as(prev_calib):
+            motion = self.road.align(prev_images, images, calib, plane, T_prev_cur, dt)
+            if motion is not None:
+                fused = self.estimator.fuse(motion.velocity, motion.covariance,
+                                            self.config.road.gate_chi2, motion.components)
+                if fused:
+                    T_prev_cur = transform_from_velocity(self.estimator.mean, dt)
+        start = plane.in_frame(T_prev_cur) if plane is not None and measure else None
+        plane = self.road.refine_plane(images, calib, start) if start is not None else None
+        if plane is None:  # no previous plane, or it was lost: the features' plane
+            left, right = self.tracker.feature_points()
+            found = fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
+                                     self._road_rng)
+            if found is not None:
+                plane = self.road.refine_plane(images, calib, RoadPlane(*found))
+        self._road_images, self._road_plane = images, plane
+        timings['road'] = (time.perf_counter() - t0) * 1e3
+        return fused
 
     def _prior(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float):
         """
@@ -320,7 +372,7 @@ class StereoOdometry:
     def _result(self, stamp: float, status: TrackingStatus, t_start: float,
                 timings: dict[str, float], corr: Correspondences | None = None,
                 inliers: np.ndarray | None = None, iterations: int = 0, message: str = '',
-                accepted: bool = True) -> OdometryResult:
+                accepted: bool = True, road_fused: bool = False) -> OdometryResult:
         # Velocity in the CURRENT camera frame: rotate by the frame-to-frame rotation.
         v = self.estimator.mean
         R = rotation_from_rates(v[3:], self._last_dt)
@@ -335,5 +387,6 @@ class StereoOdometry:
             pose_covariance=self.pose_cov.copy(),
             velocity=Rb @ v, velocity_covariance=Rb @ self.estimator.cov @ Rb.T, status=status,
             n_tracked=n_tracked, n_inliers=n_inl, iterations=iterations, timings_ms=timings,
-            message=message, features=corr, inliers=inliers, accepted=accepted)
+            message=message, features=corr, inliers=inliers, accepted=accepted,
+            road_fused=road_fused)
         return res

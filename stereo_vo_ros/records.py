@@ -150,6 +150,8 @@ class OdometryResult:
     accepted : bool
         False when the frame was ignored (stamp not after the previous one); the pose is then
         the previous one and nothing should be published for it.
+    road_fused : bool
+        Whether the road alignment (``road`` section) was fused into this pair's motion.
 
     """
 
@@ -167,3 +169,4 @@ class OdometryResult:
     features: Correspondences | None = None
     inliers: np.ndarray | None = None
     accepted: bool = True
+    road_fused: bool = False

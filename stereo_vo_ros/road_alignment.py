@@ -1,0 +1,505 @@
+"""
+Direct alignment of the road plane (not in the papers): a dense measurement of the motion.
+
+The tracker hands the estimator a few dozen road features per pair, and on a fast road their
+temporal matches are the weak part of the odometry: the near road moves 50-160 px a pair and
+deforms within the KLT window. Every road pixel carries the same information, and the plane
+predicts where each one goes:
+
+1. :meth:`RoadAligner.refine_plane` refines the road plane ``n . X = d`` of a rectified stereo
+   pair by aligning the left image's road pixels with the right image. The disparity of a
+   plane is linear in ``p = n / d``: Gauss-Newton on p and the right camera's gain and offset,
+   Cauchy-weighted, coarse to fine. It starts from the previous pair's plane moved by the
+   motion (or from the plane of the features, ``ground_plane.fit_ground_plane``) and keeps the
+   pixels whose left and right images agree with the plane: a vehicle standing on the road
+   does not.
+2. :meth:`RoadAligner.align` aligns those pixels of the previous left image with the current
+   left image (plane-induced warp), starting from the estimator's motion: Gauss-Newton with the
+   ESM gradient (Benhimane and Malis 2004), the exposure's gain and offset, Cauchy weights and
+   occluders truncated, coarse to fine. By default it refines and measures the longitudinal
+   motion only (forward and vertical translation, pitch): the lateral translation and the yaw,
+   which the road alone hardly tells apart, stay the features'.
+
+The pipeline fuses the measurement with the filter's estimate (:meth:`MotionEstimator.fuse`)
+after a Mahalanobis gate. Only rectified input is aligned; without an admissible road plane
+(no road in view, a wall ahead), or when either step does not converge, nothing is measured
+and the pair is estimated as the papers describe.
+
+Pixels compared: every ``road.pixel_step``-th of each pyramid level, on the plane between
+``road.min_depth_m`` and ``road.max_depth_m`` ahead and within ``road.max_lateral_m`` of the
+optical axis. Frames: the previous / current left camera optical frames (x right, y down,
+z forward), metres; ``T_prev_cur`` is the pose of the current left camera in the previous one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import cv2
+import numpy as np
+
+from .camera import StereoCalibration
+from .config import RansacConfig, RoadConfig
+from .motion import velocity_from_transform
+
+#: The plane lies at least this far below the optical centre (m).
+MIN_HEIGHT_M = 0.1
+#: Grey-level differences above this are occluders (a vehicle, a barrier) and weigh nothing.
+MAX_DIFFERENCE = 30.0
+#: Scale of the Cauchy weights in robust residual scales.
+CAUCHY_SCALES = 2.0
+#: The residual scale is the median of every n-th residual.
+SCALE_SUBSAMPLE = 4
+#: Floor of the residual scale (grey levels).
+MIN_SCALE = 0.5
+#: ``cv2.remap`` maps are split into rows of this many points (it takes at most 32767 columns).
+REMAP_COLUMNS = 1024
+#: A road pixel agrees with the plane when its stereo residual is within this many robust
+#: scales (grey levels).
+STEREO_INLIER_SCALES = 3.0
+#: Rows prepared above the farthest road compared (input pixels): blur, and the road moving up
+#: in the image between two pairs (pitch, bounce).
+FIRST_ROW_MARGIN_PX = 24
+#: Finite-difference step of the motion-to-velocity Jacobian (m and rad).
+JACOBIAN_STEP = 1e-6
+#: State components (V_X, V_Y, V_Z, w_X, w_Y, w_Z) the road alignment refines and measures.
+MOTION_COMPONENTS = {'longitudinal': [1, 2, 3], 'full': [0, 1, 2, 3, 4, 5]}
+#: The alignment converged when its last step moved the road pixels by less than this (RMS, px).
+CONVERGED_PX = 0.05
+#: The plane, refined again at every pair from the last one, converged when its last step
+#: moved the disparities by less than this (RMS, pixels).
+PLANE_CONVERGED_PX = 0.25
+
+
+@dataclass(frozen=True)
+class RoadPlane:
+    """
+    The road ``normal . X = d`` in a left camera optical frame.
+
+    Attributes
+    ----------
+    normal : np.ndarray
+        (3,) unit normal pointing down (positive y component).
+    d : float
+        Height of the optical centre above the plane (m).
+    pixels : tuple or None
+        Per pyramid level of the pair it was refined on (``RoadAligner.refine_plane``), the
+        grid pixels u, v (N,) of that level and their points (N, 3) on the plane, those whose
+        left and right images agree with the plane (a vehicle on the road does not); None
+        for a plane from elsewhere.
+
+    """
+
+    normal: np.ndarray
+    d: float
+    pixels: tuple | None = None
+
+    def in_frame(self, T_a_b: np.ndarray) -> 'RoadPlane':
+        """Return the plane in frame b, given the pose ``T_a_b`` (4, 4) of b in this frame a."""
+        R, t = T_a_b[:3, :3], T_a_b[:3, 3]
+        return RoadPlane(R.T @ self.normal, float(self.d - self.normal @ t))
+
+    def admissible(self, ransac: RansacConfig) -> bool:
+        """Whether a forward-looking camera could stand on it (``ransac.ground_*`` bounds)."""
+        return bool(np.all(np.isfinite(self.normal)) and math.isfinite(self.d)
+                    and self.normal[1] >= math.cos(math.radians(ransac.ground_max_tilt_deg))
+                    and MIN_HEIGHT_M <= self.d <= ransac.ground_max_height_m)
+
+
+@dataclass
+class RoadLevel:
+    """
+    One pyramid level of a rectified stereo pair prepared for the alignment.
+
+    Attributes
+    ----------
+    left : (H, W) float32 the blurred left image (grey levels).
+    left_grad : (H, W, 3) float32 the blurred left image and its x and y gradients (grey
+        levels, grey levels per pixel), sampled together.
+    right_grad : (H, W, 2) float32 the blurred right image and its x gradient.
+    scale : float pixels of this level per pixel of the input (1, 1/2, 1/4, ...).
+    row0 : int the arrays start at this row of the level (the rows above see no road).
+
+    """
+
+    left: np.ndarray
+    left_grad: np.ndarray
+    right_grad: np.ndarray
+    scale: float
+    row0: int = 0
+
+    def intrinsics(self, calib: StereoCalibration) -> tuple[float, float, float]:
+        """Focal length and principal point (f, cx, cy) of the left camera at this level."""
+        K, s = calib.K_left, self.scale  # cv2.pyrDown: pixel j of a level is pixel 2j below
+        return K[0, 0] * s, K[0, 2] * s, K[1, 2] * s
+
+    def inside(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Whether pixels (u, v) of the level can be sampled (bilinear, inside the arrays)."""
+        h, w = self.left.shape
+        return (u > 0) & (u < w - 1) & (v > self.row0) & (v < self.row0 + h - 1)
+
+
+@dataclass
+class RoadImages:
+    """A rectified stereo pair prepared for the alignment: levels[0] is the input's size."""
+
+    levels: list[RoadLevel]
+
+
+@dataclass
+class RoadMotion:
+    """
+    Result of :meth:`RoadAligner.align`.
+
+    Attributes
+    ----------
+    T_prev_cur : (4, 4) float64 pose of the current left camera in the previous one (m).
+    velocity : (6,) float64 the same motion as a state of the estimator (m/s, rad/s, previous
+        left frame; see :mod:`~stereo_vo_ros.motion`).
+    covariance : (6, 6) float64 covariance of ``velocity`` (inflated by
+        ``road.covariance_inflation``); meaningful in the rows and columns of ``components``.
+    components : list of int the state components measured (``MOTION_COMPONENTS``).
+    pixels : int road pixels compared in the last iteration.
+    scale : float robust residual scale (grey levels).
+
+    """
+
+    T_prev_cur: np.ndarray
+    velocity: np.ndarray
+    covariance: np.ndarray
+    components: list
+    pixels: int
+    scale: float
+
+
+def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` (H, W[, C]) at pixels (u, v) (N,): (N,) or (N, C) float."""
+    n = len(u)
+    m = -(-n // REMAP_COLUMNS) * REMAP_COLUMNS
+    uu = np.zeros(m, np.float32)
+    vv = np.zeros(m, np.float32)
+    uu[:n], vv[:n] = u, v
+    out = cv2.remap(img, uu.reshape(-1, REMAP_COLUMNS), vv.reshape(-1, REMAP_COLUMNS),
+                    cv2.INTER_LINEAR)
+    return out.reshape((m,) + img.shape[2:])[:n]
+
+
+def _weights(r: np.ndarray) -> np.ndarray:
+    """
+    Return the Cauchy weights of residuals r (grey levels).
+
+    ``1 / (1 + (r / c)^2)`` with c ``CAUCHY_SCALES`` robust scales (:func:`_scale`); 0 for
+    occluders (above ``MAX_DIFFERENCE``).
+    """
+    w = 1.0 / (1.0 + (r / (CAUCHY_SCALES * _scale(r))) ** 2)
+    w[np.abs(r) >= MAX_DIFFERENCE] = 0.0
+    return w
+
+
+def _scale(r: np.ndarray) -> float:
+    """
+    Return the robust scale of residuals r (grey levels).
+
+    1.4826 times the median absolute residual below ``MAX_DIFFERENCE``, of every
+    ``SCALE_SUBSAMPLE``-th residual (the median was a tenth of the alignment's time).
+    """
+    a = np.abs(r[::SCALE_SUBSAMPLE] if len(r) >= 400 * SCALE_SUBSAMPLE else r)
+    a = a[a < MAX_DIFFERENCE]
+    return max(1.4826 * float(np.median(a)) if a.size else MAX_DIFFERENCE, MIN_SCALE)
+
+
+def _projection_jacobians(xn: np.ndarray, yn: np.ndarray, iz: np.ndarray, f: float,
+                          free: list) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Return the derivatives of the pixel coordinates u and v ((N, k) each) of points.
+
+    The points are ``X' = (xn, yn, 1) / iz`` (current camera frame), perturbed as
+    ``X' -> X' + dv + dw x X'``; the columns are the components ``free`` of (dv, dw).
+    """
+    du = (lambda: f * iz, lambda: 0.0 * iz, lambda: -f * xn * iz, lambda: -f * xn * yn,
+          lambda: f * (1.0 + xn * xn), lambda: -f * yn)
+    dv = (lambda: 0.0 * iz, lambda: f * iz, lambda: -f * yn * iz,
+          lambda: -f * (1.0 + yn * yn), lambda: f * xn * yn, lambda: f * xn)
+    return np.stack([du[i]() for i in free], axis=1), np.stack([dv[i]() for i in free], axis=1)
+
+
+def _exp_se3(delta: np.ndarray) -> np.ndarray:
+    """(4, 4) transform of a left perturbation ``(dv (3), dw (3))``: ``X -> R(dw) X + dv``."""
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(delta[3:], np.float64).reshape(3, 1))[0]
+    T[:3, 3] = delta[:3]
+    return T
+
+
+class RoadAligner:
+    """
+    Dense road alignment of stereo pairs and of consecutive left images.
+
+    Parameters
+    ----------
+    cfg : RoadConfig
+        The ``road`` section of the configuration.
+    ransac : RansacConfig
+        Its ``ground_*`` bounds decide which planes are admissible.
+
+    """
+
+    def __init__(self, cfg: RoadConfig, ransac: RansacConfig) -> None:
+        self.cfg = cfg
+        self.ransac = ransac
+
+    def first_row(self, calib: StereoCalibration, plane: RoadPlane | None) -> int:
+        """
+        First image row that can see the plane nearer than ``road.max_depth_m``, less a margin.
+
+        0 without a plane. Pass it to :meth:`prepare` to leave the sky and the far scene out.
+        """
+        if plane is None:
+            return 0
+        K = calib.K_left
+        f, cx, cy = K[0, 0], K[0, 2], K[1, 2]
+        n = plane.normal
+        u = np.array([0.0, calib.size[0] - 1.0])
+        v = cy + f * (plane.d / self.cfg.max_depth_m - n[2] - (u - cx) / f * n[0]) / n[1]
+        return int(max(0.0, np.floor(np.min(v)) - FIRST_ROW_MARGIN_PX))
+
+    def prepare(self, left: np.ndarray, right: np.ndarray, first_row: int = 0) -> RoadImages:
+        """
+        Build ``road.levels`` pyramid levels of a rectified pair ((H, W) uint8 each).
+
+        Each level is blurred by ``road.blur_px`` (its own pixels) and carries its gradients.
+        Only the rows from ``first_row`` on are prepared (rounded down to the coarsest level).
+        """
+        sigma = self.cfg.blur_px
+        levels = []
+        q = 2 ** (self.cfg.levels - 1)
+        r0 = (min(max(int(first_row), 0), left.shape[0] - 16 * q) // q) * q
+        r0 = max(r0, 0)
+        lo, ro = left[r0:].astype(np.float32), right[r0:].astype(np.float32)
+        for k in range(self.cfg.levels):
+            if k:
+                lo, ro = cv2.pyrDown(lo), cv2.pyrDown(ro)
+            lb = cv2.GaussianBlur(lo, (0, 0), sigma) if sigma > 0 else lo
+            rb = cv2.GaussianBlur(ro, (0, 0), sigma) if sigma > 0 else ro
+            levels.append(RoadLevel(
+                lb, cv2.merge([lb, cv2.Sobel(lb, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
+                               cv2.Sobel(lb, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)]),
+                cv2.merge([rb, cv2.Sobel(rb, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)]),
+                0.5 ** k, r0 // 2 ** k))
+        return RoadImages(levels)
+
+    def _road_pixels(self, level: RoadLevel, calib: StereoCalibration, plane: RoadPlane
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Return the grid pixels of a level's left image that see the road.
+
+        The road is the plane between the depth bounds and within ``road.max_lateral_m`` of
+        the optical axis.
+
+        Returns their coordinates u, v (N,) (pixels of the level) and 3-D points (N, 3) (m).
+        """
+        f, cx, cy = level.intrinsics(calib)
+        step = self.cfg.pixel_step
+        h, w = level.left.shape
+        vs, us = np.mgrid[level.row0 + 1:level.row0 + h - 1:step, 1:w - 1:step]
+        us, vs = us.ravel().astype(np.float64), vs.ravel().astype(np.float64)
+        ray = np.stack([(us - cx) / f, (vs - cy) / f, np.ones_like(us)], axis=1)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            depth = plane.d / (ray @ plane.normal)
+        on = (depth > self.cfg.min_depth_m) & (depth < self.cfg.max_depth_m) & \
+            (np.abs(ray[:, 0] * depth) < self.cfg.max_lateral_m)
+        return us[on], vs[on], ray[on] * depth[on, None]
+
+    def refine_plane(self, images: RoadImages, calib: StereoCalibration, plane: RoadPlane
+                     ) -> RoadPlane | None:
+        """
+        Refine the road plane of a rectified pair by aligning its left and right images.
+
+        The disparity of the left pixel on ray ``r`` (z = 1) is ``f b p . r`` with
+        ``p = n / d``: Gauss-Newton on p, coarse level first.
+
+        Parameters
+        ----------
+        images : RoadImages
+            The pair (``prepare``).
+        calib : StereoCalibration
+            Rectified calibration (``K_left``, ``baseline_m``).
+        plane : RoadPlane
+            Starting plane (left camera frame), within a few pixels of disparity.
+
+        Returns
+        -------
+        RoadPlane, or None when too few road pixels are seen, the last step still moved the
+        disparities by ``PLANE_CONVERGED_PX`` or more (RMS), or the result is not an admissible
+        road.
+
+        """
+        p = plane.normal / plane.d
+        gain, offset = 1.0, 0.0
+        moved = np.inf
+        grids = []
+        for level in reversed(images.levels):
+            fb = level.intrinsics(calib)[0] * calib.baseline_m
+            us, vs, X = self._road_pixels(level, calib, RoadPlane(p / np.linalg.norm(p),
+                                                                  1.0 / np.linalg.norm(p)))
+            if len(us) < self.cfg.min_pixels * level.scale ** 2:
+                return None
+            ray = X / X[:, 2:3]
+            ref = _sample(level.left, us, vs - level.row0)
+            grids.insert(0, (level, fb, us, vs, ray, ref))
+            for _ in range(self.cfg.stereo_iterations):
+                r, ok, sampled = self._stereo_residuals(level, fb, us, vs, ray, ref, p, gain,
+                                                        offset)
+                if np.count_nonzero(ok) < self.cfg.min_pixels * level.scale ** 2:
+                    return None
+                J = np.column_stack([(-fb * gain * sampled[:, 1])[:, None] * ray[ok],
+                                     sampled[:, 0], np.ones_like(r)])
+                Jw = J * _weights(r)[:, None]
+                try:
+                    step = -np.linalg.solve(Jw.T @ J, Jw.T @ r)
+                except np.linalg.LinAlgError:
+                    return None
+                p = p + step[:3]
+                gain, offset = gain + step[3], offset + step[4]
+                moved = float(np.sqrt(np.mean((fb * (ray[ok] @ step[:3])) ** 2))) / level.scale
+        norm = float(np.linalg.norm(p))
+        if not (np.isfinite(norm) and norm > 0 and moved < PLANE_CONVERGED_PX):
+            return None
+        out = RoadPlane(p / norm, 1.0 / norm)
+        if not out.admissible(self.ransac):
+            return None
+        # Per level, the pixels whose left and right images agree with the plane (residual
+        # within STEREO_INLIER_SCALES robust scales): a vehicle standing on the road does not.
+        pixels = []
+        for level, fb, us, vs, ray, ref in grids:
+            r, ok, _ = self._stereo_residuals(level, fb, us, vs, ray, ref, p, gain, offset)
+            keep = np.flatnonzero(ok)[np.abs(r) < STEREO_INLIER_SCALES * _scale(r)]
+            pixels.append((us[keep], vs[keep], ray[keep] / (ray[keep] @ p)[:, None]))
+        return RoadPlane(out.normal, out.d, tuple(pixels))
+
+    @staticmethod
+    def _stereo_residuals(level: RoadLevel, fb: float, us: np.ndarray, vs: np.ndarray,
+                          ray: np.ndarray, ref: np.ndarray, p: np.ndarray, gain: float,
+                          offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Stereo residuals ``g I_R + o - I_L`` (grey levels) of left pixels (us, vs) on plane p.
+
+        The disparity of the pixel on ray r (z = 1) is ``fb p . r``; the right camera's gain g
+        and offset o may differ from the left one's. Returns the residuals of the pixels whose
+        match lies inside the right image, that mask (N,) and the right image's samples
+        (value, d/du) there.
+        """
+        ur = us - fb * (ray @ p)
+        ok = (ur > 0) & (ur < level.left.shape[1] - 1)
+        sampled = _sample(level.right_grad, ur[ok], vs[ok] - level.row0)
+        return gain * sampled[:, 0] + offset - ref[ok], ok, sampled
+
+    def align(self, prev: RoadImages, cur: RoadImages, calib: StereoCalibration,
+              plane: RoadPlane, T_prev_cur: np.ndarray, dt: float) -> RoadMotion | None:
+        """
+        Refine the motion between two left images by aligning the road.
+
+        With ``road.motion: longitudinal`` only the forward and vertical translation and the
+        pitch are refined (the others stay at the starting motion and are not measured): on
+        the rendered highway the lateral translation and the yaw, which the road alone hardly
+        tells apart, drifted together and dragged the forward translation along.
+
+        Parameters
+        ----------
+        prev, cur : RoadImages
+            The previous and the current pair (only their left images are used).
+        calib : StereoCalibration
+            Rectified calibration (``K_left``).
+        plane : RoadPlane
+            The road in the previous left camera frame.
+        T_prev_cur : np.ndarray
+            (4, 4) starting motion (the estimator's), within a few pixels on the road.
+        dt : float
+            Time between the pairs (s), > 0.
+
+        Returns
+        -------
+        RoadMotion, or None when too few road pixels stay in view, the solve is singular or
+        the last step still moved the road pixels by ``CONVERGED_PX`` or more (RMS).
+
+        """
+        free = MOTION_COMPONENTS[self.cfg.motion]
+        k = len(free)
+        T_cp = np.linalg.inv(T_prev_cur)  # maps previous-frame points into the current frame
+        gain, offset = 1.0, 0.0
+        moved = np.inf
+        for index in reversed(range(len(prev.levels))):
+            lp, lc = prev.levels[index], cur.levels[index]
+            f, cx, cy = lp.intrinsics(calib)
+            K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+            us, vs, X = plane.pixels[index] if plane.pixels is not None else \
+                self._road_pixels(lp, calib, plane)
+            need = self.cfg.min_pixels * lp.scale ** 2
+            if len(us) < need or not dt > 0:
+                return None
+            tmpl = _sample(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
+            iterations = self.cfg.motion_iterations if lp.scale == 1.0 else \
+                self.cfg.coarse_iterations
+            for _ in range(iterations):
+                Xc = X @ T_cp[:3, :3].T + T_cp[:3, 3]
+                with np.errstate(divide='ignore', invalid='ignore'):
+                    iz = 1.0 / Xc[:, 2]
+                u, v = f * Xc[:, 0] * iz + cx, f * Xc[:, 1] * iz + cy
+                ok = (Xc[:, 2] > self.cfg.min_depth_m / 2) & lc.inside(u, v)
+                if np.count_nonzero(ok) < need:
+                    return None
+                u, v, iz, t = u[ok], v[ok], iz[ok], tmpl[ok]
+                cur_s = _sample(lc.left_grad, u, v - lc.row0)
+                # The exposure may change between the pairs: r = g I_cur + o - I_prev.
+                r = gain * cur_s[:, 0] + offset - t[:, 0]
+                # ESM (Benhimane & Malis): the mean of the current image's gradient and the
+                # template's, carried into current pixels by the inverse Jacobian of the plane
+                # warp. The current image alone (forward additive) converged at a third of the
+                # rate: near the camera it shows the road larger and sharper than the template.
+                H = K @ (T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal) / plane.d) \
+                    @ np.linalg.inv(K)
+                w = H[2, 0] * us[ok] + H[2, 1] * vs[ok] + H[2, 2]
+                with np.errstate(divide='ignore', invalid='ignore'):
+                    a, b = (H[0, 0] - u * H[2, 0]) / w, (H[0, 1] - u * H[2, 1]) / w
+                    c, d = (H[1, 0] - v * H[2, 0]) / w, (H[1, 1] - v * H[2, 1]) / w
+                    det = a * d - b * c
+                    gx = 0.5 * (gain * cur_s[:, 1] + (t[:, 1] * d - t[:, 2] * c) / det)
+                    gy = 0.5 * (gain * cur_s[:, 2] + (t[:, 2] * a - t[:, 1] * b) / det)
+                if not (np.all(np.isfinite(gx)) and np.all(np.isfinite(gy))):
+                    return None
+                Ju, Jv = _projection_jacobians((u - cx) / f, (v - cy) / f, iz, f, free)
+                J = np.hstack([gx[:, None] * Ju + gy[:, None] * Jv, cur_s[:, :1],
+                               np.ones((len(r), 1))])
+                Jw = J * _weights(r)[:, None]
+                A = Jw.T @ J
+                try:
+                    step = -np.linalg.solve(A, Jw.T @ r)
+                except np.linalg.LinAlgError:
+                    return None
+                delta = np.zeros(6)
+                delta[free] = step[:k]
+                T_cp = _exp_se3(delta) @ T_cp
+                gain, offset = gain + step[k], offset + step[k + 1]
+            # RMS image motion of the road pixels in the last step (input pixels).
+            moved = float(np.sqrt(np.mean((Ju @ step[:k]) ** 2 + (Jv @ step[:k]) ** 2))) \
+                / lp.scale
+        if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
+            return None
+        try:
+            # The brightness parameters are marginalised: the motion block of the inverse.
+            cov_free = np.linalg.inv(A)[:k, :k] * _scale(r) ** 2 * self.cfg.covariance_inflation
+        except np.linalg.LinAlgError:
+            return None
+        T = np.linalg.inv(T_cp)
+        y = velocity_from_transform(T, dt)
+        Jy = np.empty((6, k))
+        for j, i in enumerate(free):
+            e = np.zeros(6)
+            e[i] = JACOBIAN_STEP
+            Jy[:, j] = (velocity_from_transform(np.linalg.inv(_exp_se3(e) @ T_cp), dt) - y) \
+                / JACOBIAN_STEP
+        # The unrefined components are not measured: only the rows of ``free`` are fused.
+        cov = Jy @ cov_free @ Jy.T
+        return RoadMotion(T, y, 0.5 * (cov + cov.T), free, int(np.count_nonzero(ok)),
+                          _scale(r))

@@ -1,0 +1,187 @@
+"""Direct road alignment: the plane of a stereo pair, the motion between pairs, the fusion."""
+
+import numpy as np
+import pytest
+
+from stereo_vo_ros.camera import StereoCalibration
+from stereo_vo_ros.config import Config, ConfigError
+from stereo_vo_ros.estimator import MotionEstimator
+from stereo_vo_ros.motion import velocity_from_transform
+from stereo_vo_ros.pipeline import StereoOdometry
+from stereo_vo_ros.records import StereoFrame
+from stereo_vo_ros.road_alignment import RoadAligner, RoadPlane
+from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
+
+from test_estimator_core import kitti_calibration
+
+DT = 0.1
+
+
+@pytest.fixture(scope='module')
+def highway():
+    """Three rendered highway pairs (seed 2, 25 m/s), their true road planes and poses."""
+    spec = SequenceSpec.preset('highway', seed=2)
+    renderer = StereoRenderer(spec)
+    frames = [renderer.render(i) for i in range(3)]
+    ground_y = renderer.scene.ground_y  # world y of the road (y down); yaw-only camera
+    planes = [RoadPlane(fr.T_world_cam[:3, :3].T @ np.array([0.0, 1.0, 0.0]),
+                        ground_y - fr.T_world_cam[1, 3]) for fr in frames]
+    return renderer.calibration, frames, planes
+
+
+def aligner(**dotted):
+    cfg = Config().replace(**dotted)
+    return RoadAligner(cfg.road, cfg.ransac)
+
+
+def angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+
+def test_plane_in_another_frame():
+    plane = RoadPlane(np.array([0.0, 1.0, 0.0]), 1.65)
+    T = np.eye(4)
+    T[:3, 3] = [0.0, -0.2, 2.5]  # 0.2 m up and 2.5 m forward (y down)
+    moved = plane.in_frame(T)
+    assert moved.d == pytest.approx(1.85)
+    np.testing.assert_allclose(moved.normal, plane.normal)
+    assert moved.admissible(Config().ransac)
+    assert not RoadPlane(np.array([1.0, 0.0, 0.0]), 1.65).admissible(Config().ransac)  # a wall
+    assert not RoadPlane(np.array([0.0, 1.0, 0.0]), 50.0).admissible(Config().ransac)
+
+
+def test_stereo_alignment_refines_the_road_plane(highway):
+    """From 1.5 % too high and tilted by 0.3 deg to the rendered road (camera height, pitch)."""
+    calib, frames, planes = highway
+    ra = aligner(**{'road.stereo_iterations': 5})
+    true = planes[0]
+    tilt = np.radians(0.3)
+    plane = RoadPlane(np.array([0.0, np.cos(tilt), np.sin(tilt)]), true.d * 1.015)
+    images = ra.prepare(frames[0].left, frames[0].right, ra.first_row(calib, plane))
+    errors = []
+    for _ in range(4):  # as the pipeline does, one call per pair from the last plane
+        plane = ra.refine_plane(images, calib, plane)
+        assert plane is not None
+        errors.append(abs(plane.d / true.d - 1))
+    assert errors[-1] < 0.005
+    assert errors[-1] < errors[0]
+    assert angle_deg(plane.normal, true.normal) < 0.1
+
+
+def test_motion_alignment_recovers_the_forward_step(highway):
+    """From the true motion with a forward step 2 % short, to within 0.3 % of the step."""
+    calib, frames, planes = highway
+    ra = aligner()
+    prev = ra.prepare(frames[0].left, frames[0].right, ra.first_row(calib, planes[0]))
+    cur = ra.prepare(frames[1].left, frames[1].right, ra.first_row(calib, planes[0]))
+    T_true = np.linalg.inv(frames[0].T_world_cam) @ frames[1].T_world_cam
+    start = T_true.copy()
+    start[:3, 3] *= 0.98
+    got = ra.align(prev, cur, calib, planes[0], start, DT)
+    assert got is not None
+    assert got.components == [1, 2, 3]  # longitudinal: V_Y, V_Z, w_X
+    step = np.linalg.norm(T_true[:3, 3])
+    assert abs(got.T_prev_cur[2, 3] - T_true[2, 3]) < 0.003 * step
+    # The components left alone keep the starting motion.
+    np.testing.assert_allclose(got.T_prev_cur[0, 3], start[0, 3], atol=1e-9)
+    np.testing.assert_allclose(got.velocity, velocity_from_transform(got.T_prev_cur, DT))
+    block = got.covariance[np.ix_(got.components, got.components)]
+    assert np.all(np.isfinite(block)) and np.all(np.linalg.eigvalsh(block) > 0)
+    assert got.pixels > 1000 and 0 < got.scale < 10
+    # The forward speed's standard deviation is a small fraction of the speed.
+    assert np.sqrt(got.covariance[2, 2]) < 0.005 * np.linalg.norm(got.velocity[:3])
+    full = aligner(**{'road.motion': 'full'}).align(prev, cur, calib, planes[0], start, DT)
+    assert full is not None and full.components == [0, 1, 2, 3, 4, 5]
+
+
+def test_no_road_gives_no_measurement(highway):
+    calib, frames, planes = highway
+    ra = aligner()
+    flat = np.full_like(frames[0].left, 128)
+    images = ra.prepare(flat, flat)
+    # No texture: the normal equations are singular or the result is not a road.
+    assert ra.refine_plane(images, calib, planes[0]) is None
+    assert ra.align(images, images, calib, planes[0], np.eye(4), DT) is None
+    # A plane no pixel sees within road.max_depth_m: nothing to compare.
+    far = RoadPlane(np.array([0.0, 1.0, 0.0]), 3.9)
+    textured = ra.prepare(frames[0].left, frames[0].right)
+    narrow = aligner(**{'road.max_depth_m': 4.5})
+    assert narrow.align(textured, textured, calib, far, np.eye(4), DT) is None
+    assert narrow.refine_plane(textured, calib, far) is None
+
+
+def test_prepare_keeps_the_rows_that_can_see_the_road(highway):
+    calib, frames, planes = highway
+    ra = aligner()
+    row = ra.first_row(calib, planes[0])
+    assert 0 < row < calib.size[1] // 2 + 60  # below the sky, above the road's far end
+    assert ra.first_row(calib, None) == 0
+    images = ra.prepare(frames[0].left, frames[0].right, row)
+    assert [lv.scale for lv in images.levels] == [1.0, 0.5]
+    assert images.levels[0].row0 <= row and images.levels[1].row0 == images.levels[0].row0 // 2
+    assert images.levels[0].left.shape[0] == calib.size[1] - images.levels[0].row0
+
+
+def test_fuse_is_a_kalman_update_of_the_measured_components():
+    est = MotionEstimator(Config())
+    est.mean = np.array([0.1, 0.0, 24.0, 0.0, 0.01, 0.0])
+    P = np.diag([0.3, 0.2, 0.5, 0.01, 0.01, 0.01]) ** 2
+    P[2, 4] = P[4, 2] = 0.5 * 0.5 * 0.01 * 0.3  # correlated forward speed and yaw rate
+    est.cov = P.copy()
+    z = np.array([9.0, 0.05, 25.0, 0.002, 9.0, 9.0])  # only components 1, 2, 3 are meant
+    R = np.diag([1.0, 0.02, 0.05, 0.001, 1.0, 1.0]) ** 2
+    mean0 = est.mean.copy()
+    assert est.fuse(z, R, gate_chi2=22.5, components=[1, 2, 3])
+    H = np.eye(6)[[1, 2, 3]]
+    S = H @ P @ H.T + R[1:4, 1:4]
+    K = P @ H.T @ np.linalg.inv(S)
+    np.testing.assert_allclose(est.mean, mean0 + K @ (z[1:4] - mean0[1:4]), atol=1e-12)
+    np.testing.assert_allclose(est.cov, P - K @ H @ P, atol=1e-12)
+    assert est.mean[4] != mean0[4]  # the yaw rate follows through the correlation
+    # Far from the estimate: rejected, nothing changes.
+    before = (est.mean.copy(), est.cov.copy())
+    assert not est.fuse(z + np.array([0, 0, 5.0, 0, 0, 0]), R, 22.5, [1, 2, 3])
+    np.testing.assert_array_equal(est.mean, before[0])
+    np.testing.assert_array_equal(est.cov, before[1])
+
+
+def test_pipeline_fuses_the_road_and_can_do_without(highway):
+    calib, frames, _ = highway
+    spec = SequenceSpec.preset('highway', seed=2)
+    renderer = StereoRenderer(spec)
+    frames = frames + [renderer.render(i) for i in range(3, 8)]
+    runs = {}
+    for enabled in (True, False):
+        vo = StereoOdometry(Config().replace(**{'road.enabled': enabled}))
+        results = [vo.process(fr.stereo_frame(calib)) for fr in frames]
+        runs[enabled] = results
+        assert not results[0].road_fused  # the first pair has nothing to align with
+        assert all(np.all(np.isfinite(r.T_world_cam)) for r in results)
+    fused = [r.road_fused for r in runs[True][1:]]
+    assert sum(fused) >= len(fused) - 2
+    assert all('road' in r.timings_ms for r in runs[True])
+    assert not any(r.road_fused or 'road' in r.timings_ms for r in runs[False])
+    # After 7 pairs (17.5 m) the road run ends 9 mm from the truth, the features alone 23 mm.
+    truth = frames[-1].T_world_cam[:3, 3]
+    err = {k: np.linalg.norm(v[-1].T_world_cam[:3, 3] - truth) for k, v in runs.items()}
+    assert err[True] < 0.015 and err[False] < 0.04
+    assert err[True] < err[False]
+
+
+def test_raw_input_is_not_aligned():
+    """The alignment needs rectified images (the plane warp is of the rectified pinhole)."""
+    calib = kitti_calibration()
+    raw = StereoCalibration.from_models(calib.left, calib.right, kind='raw')
+    vo = StereoOdometry(Config().replace(**{'pipeline.input_kind': 'raw'}))
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (calib.size[1], calib.size[0]), np.uint8)
+    for k in range(3):
+        res = vo.process(StereoFrame(img, img, 0.1 * k, raw))
+        assert not res.road_fused and 'road' not in res.timings_ms
+
+
+def test_road_configuration_is_checked():
+    with pytest.raises(ConfigError, match='road.min_depth_m'):
+        Config().replace(**{'road.min_depth_m': 40.0, 'road.max_depth_m': 35.0})
+    with pytest.raises(ConfigError, match='road.motion'):
+        Config().replace(**{'road.motion': 'lateral'})
