@@ -343,7 +343,8 @@ class MotionEstimator:
         """
         idx = np.arange(6) if components is None else np.asarray(components, int)
         innovation = np.asarray(velocity, np.float64)[idx] - self.mean[idx]
-        S = self.cov[np.ix_(idx, idx)] + np.asarray(covariance)[np.ix_(idx, idx)]
+        R = np.asarray(covariance)[np.ix_(idx, idx)]
+        S = self.cov[np.ix_(idx, idx)] + R
         PHt = self.cov[:, idx]  # P H^T (6, k)
         try:
             m2 = float(innovation @ np.linalg.solve(S, innovation))
@@ -353,7 +354,9 @@ class MotionEstimator:
         if not (np.isfinite(m2) and m2 < gate_chi2):
             return False
         self.mean = self.mean + gain @ innovation
-        cov = self.cov - gain @ PHt.T
+        H = np.eye(6)[idx]
+        I_KH = np.eye(6) - gain @ H
+        cov = I_KH @ self.cov @ I_KH.T + gain @ R @ gain.T  # Joseph form
         self.cov = 0.5 * (cov + cov.T)
         return True
 
