@@ -38,7 +38,7 @@ sequence and configuration are shared between the tables.
 Usage::
 
     python benchmarks/bench_accuracy.py [--data ../shared/data] [--frames N] [--repeat 3]
-        [--seed 0] [--quick] [--json results.json]
+        [--seed 0] [--quick] [--json results.json] [--set road.enabled=true ...]
 
 ``--frames`` shortens every rendered sequence (default: the preset's count, 300 or 200); the
 renderer lays the scene out from the duration, so a shorter sequence is another scene, not a
@@ -71,6 +71,15 @@ from stereo_vo_ros.motion import TransferModel, velocity_from_transform  # noqa:
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import StereoFrame, TrackingStatus  # noqa: E402
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer  # noqa: E402
+
+#: Overrides (``--set``) applied to every configuration of the run.
+BASE_OVERRIDES: dict = {}
+
+
+def base_config() -> Config:
+    """Return the default configuration with the ``--set`` overrides of this run."""
+    return Config().replace(**BASE_OVERRIDES)
+
 
 KITTI_CLIPS = ('kitti06_f0000-0050', 'kitti01_f0000-0050')
 STATIC_CLIP = 'euroc_v101_static'
@@ -235,8 +244,8 @@ class Runner:
         self._memo: dict = {}
 
     def __call__(self, clip: Clip, **overrides: object) -> dict:
-        """Return the run of ``clip`` with ``Config().replace(**overrides)``."""
-        config = Config().replace(**overrides)
+        """Return the run of ``clip`` with ``base_config().replace(**overrides)``."""
+        config = base_config().replace(**overrides)
         key = (clip.name, repr(config.as_dict()))
         if key not in self._memo:
             self._memo[key] = run_clip(clip, config)
@@ -422,7 +431,7 @@ def timing_rows(clip: Clip, repeat: int) -> dict:
     stages: dict[str, list] = {}
     cpu: list = []
     for _ in range(repeat):
-        run = run_clip(clip, Config())
+        run = run_clip(clip, base_config())
         for t in run['timings'][1:]:
             for key, value in t.items():
                 stages.setdefault(key, []).append(value)
@@ -433,7 +442,7 @@ def timing_rows(clip: Clip, repeat: int) -> dict:
 
 def table_timing(clips: list, repeat: int) -> dict:
     """Table 2: milliseconds per frame and stage, wall and thread CPU clocks."""
-    cfg = Config()
+    cfg = base_config()
     print(f'\n== 2. Time per frame (ms, median / p95 over frames of {repeat} run(s), first '
           f'frame left out), {cfg.tracker.max_features} features, cv2 threads '
           f'{cv2.getNumThreads()}, OMP/OpenBLAS threads {os.environ["OMP_NUM_THREADS"]}, '
@@ -553,7 +562,7 @@ def table_ablation(clips: list, runner: Runner) -> dict:
                 overrides['tracker.bicircular_mode'] = mode
             off = departures_off(extra)
             s = summary(clip, runner(clip, **overrides))
-            shown = mode or (Config().tracker.bicircular_mode
+            shown = mode or (base_config().tracker.bicircular_mode
                              if variant in ('bc', 'db') else '-')
             results[clip.name][f'{variant}/{shown}' + ('' if off == '-' else f'/{off}')] = s
             ratio = 100.0 * s['inliers_per_frame'] / max(s['features_per_frame'], 1e-9)
@@ -573,7 +582,7 @@ def identical_pairs(clip: Clip, frames: int) -> dict:
     same = Clip(f'{clip.name} first pair x{frames}',
                 [StereoFrame(f0.left, f0.right, f0.stamp_s + i * dt, f0.calibration)
                  for i in range(frames)], np.tile(np.eye(4), (frames, 1, 1)))
-    run = run_clip(same, Config())
+    run = run_clip(same, base_config())
     end = run['poses'][-1]
     dy = run['first_dy']
     return {'frames': frames, 'dt_s': dt, 'end_m': float(np.linalg.norm(end[:3, 3])),
@@ -668,11 +677,25 @@ def main() -> int:
     parser.add_argument('--quick', action='store_true',
                         help='150 rendered frames and one timing run')
     parser.add_argument('--json', type=Path, default=None, help='also write the figures here')
+    parser.add_argument('--set', nargs='*', default=[], metavar='SECTION.KEY=VALUE',
+                        help='configuration overrides for every run (values as JSON), e.g. '
+                        'road.enabled=true')
     parser.add_argument('--seeds', type=int, nargs='*', default=[1, 2, 3],
                         help='extra seeds of the clean presets in table 6 (default: 1 2 3)')
     parser.add_argument('--skip-diagnostics', action='store_true',
                         help='leave out table 6 (where the errors come from)')
     args = parser.parse_args()
+    for item in args.set:
+        key, sep, value = item.partition('=')
+        if not sep:
+            raise SystemExit(f'--set {item!r}: expected section.key=value')
+        try:
+            BASE_OVERRIDES[key] = json.loads(value)
+        except json.JSONDecodeError:
+            BASE_OVERRIDES[key] = value
+    base_config()  # unknown keys and bad values fail here
+    if BASE_OVERRIDES:
+        print(f'configuration overrides for every run: {json.dumps(BASE_OVERRIDES)}')
     if args.quick:
         args.frames = args.frames or 150
         args.repeat = 1

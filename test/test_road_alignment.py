@@ -188,12 +188,18 @@ def test_raw_input_is_not_aligned():
     """The alignment needs rectified images (the plane warp is of the rectified pinhole)."""
     calib = kitti_calibration()
     raw = StereoCalibration.from_models(calib.left, calib.right, kind='raw')
-    vo = StereoOdometry(Config().replace(**{'pipeline.input_kind': 'raw'}))
+    vo = StereoOdometry(Config().replace(**{'pipeline.input_kind': 'raw',
+                                            'road.enabled': True}))
     rng = np.random.default_rng(0)
     img = rng.integers(0, 255, (calib.size[1], calib.size[0]), np.uint8)
     for k in range(3):
         res = vo.process(StereoFrame(img, img, 0.1 * k, raw))
         assert not res.road_fused and 'road' not in res.timings_ms
+
+
+def test_road_alignment_is_off_by_default():
+    """It costs about 7 ms per pair: the default keeps the papers' pipeline and its speed."""
+    assert Config().road.enabled is False
 
 
 def test_road_configuration_is_checked():
