@@ -65,8 +65,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros import metrics  # noqa: E402
 from stereo_vo_ros.camera import StereoCalibration  # noqa: E402
-from stereo_vo_ros.config import Config  # noqa: E402
+from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
 from stereo_vo_ros.datasets import open_sequence  # noqa: E402
+from stereo_vo_ros.errors import ConfigError  # noqa: E402
 from stereo_vo_ros.motion import TransferModel, velocity_from_transform  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import StereoFrame, TrackingStatus  # noqa: E402
@@ -685,15 +686,11 @@ def main() -> int:
     parser.add_argument('--skip-diagnostics', action='store_true',
                         help='leave out table 6 (where the errors come from)')
     args = parser.parse_args()
-    for item in args.set:
-        key, sep, value = item.partition('=')
-        if not sep:
-            raise SystemExit(f'--set {item!r}: expected section.key=value')
-        try:
-            BASE_OVERRIDES[key] = json.loads(value)
-        except json.JSONDecodeError:
-            BASE_OVERRIDES[key] = value
-    base_config()  # unknown keys and bad values fail here
+    try:
+        BASE_OVERRIDES.update(overrides_from_items(args.set))
+        base_config()  # unknown keys and bad values fail here
+    except ConfigError as exc:
+        raise SystemExit(f'--set: {exc}') from None
     if BASE_OVERRIDES:
         print(f'configuration overrides for every run: {json.dumps(BASE_OVERRIDES)}')
     if args.quick:

@@ -60,20 +60,6 @@ def parse_seeds(text: list[str]) -> list[int]:
     return seeds
 
 
-def parse_overrides(items: list[str]) -> dict:
-    """``section.key=value`` items (value as JSON, else as a string) to a dict."""
-    out = {}
-    for item in items:
-        key, sep, value = item.partition('=')
-        if not sep:
-            raise SystemExit(f'--set {item!r}: expected section.key=value')
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
-    return out
-
-
 def scene(preset: str, seed: int, frames: int | None, cache: Path | None) -> dict:
     """Render the scene of one seed, or load it from the cache: images, stamps, true poses."""
     extra = {} if frames is None else {'n_frames': frames}
@@ -131,7 +117,7 @@ def main() -> int:
     ap.add_argument('--json', type=Path, default=None, help='also write the figures here')
     args = ap.parse_args()
     cfg = config_mod.load(args.config)
-    overrides = parse_overrides(args.set)
+    overrides = config_mod.overrides_from_items(args.set)
     if overrides:
         cfg = cfg.replace(**overrides)
     seeds = parse_seeds(args.seeds)

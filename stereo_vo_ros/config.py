@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+import json
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -510,6 +511,26 @@ def from_flat(params: dict[str, Any]) -> Config:
             raise ConfigError(f'parameter {key!r} has no section (expected section.name)')
         nested.setdefault(sec, {})[name] = value
     return from_dict(nested)
+
+
+def overrides_from_items(items: list[str]) -> dict[str, Any]:
+    """
+    Parse ``section.key=value`` items (command-line ``--set``) into dotted overrides.
+
+    Values are read as JSON (``true``, ``4``, ``"x"``), else kept as strings; pass the result to
+    :meth:`Config.replace`, which rejects unknown keys. Raises ConfigError for an item without
+    ``=``.
+    """
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition('=')
+        if not sep:
+            raise ConfigError(f'override {item!r}: expected section.key=value')
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
 
 
 def load(path: str | Path | None = None) -> Config:

@@ -63,3 +63,17 @@ def test_load_errors_name_the_file(tmp_path):
     bad.write_text('filter: [1, 2\n')
     with pytest.raises(ConfigError, match='not valid YAML'):
         load(bad)
+
+
+def test_command_line_overrides():
+    items = ['road.enabled=true', 'ransac.ground_weight=8', 'filter.type=ekf',
+             'ros.odom_frame="map"']
+    overrides = config_mod.overrides_from_items(items)
+    assert overrides == {'road.enabled': True, 'ransac.ground_weight': 8,
+                         'filter.type': 'ekf', 'ros.odom_frame': 'map'}
+    cfg = Config().replace(**overrides)
+    assert cfg.road.enabled and cfg.ransac.ground_weight == 8.0 and cfg.filter.type == 'ekf'
+    with pytest.raises(ConfigError, match="'road.enabled'"):
+        config_mod.overrides_from_items(['road.enabled'])
+    with pytest.raises(ConfigError, match='unknown parameter'):
+        Config().replace(**config_mod.overrides_from_items(['road.bogus=1']))
