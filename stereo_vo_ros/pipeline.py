@@ -172,7 +172,7 @@ class StereoOdometry:
         timings: dict[str, float] = {}
         if prev_stamp is None:
             self._track(frame, None, timings)
-            self._road_step(frame, None, 0.0, False, timings)
+            self._road_step(frame, 0.0, False, timings)
             self._commit(stamp, calib, TrackingStatus.INITIALIZING)
             return self._result(stamp, TrackingStatus.INITIALIZING, t_start, timings,
                                 message='first frame: features detected')
@@ -218,7 +218,7 @@ class StereoOdometry:
                 self.estimator.reset()
                 status = TrackingStatus.LOST
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
-        road_fused = self._road_step(frame, prev_calib, dt, ok and not calib_changed, timings)
+        road_fused = self._road_step(frame, dt, ok and not calib_changed, timings)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._commit(stamp, calib, status)
         return self._result(stamp, status, t_start, timings, corr=corr,
@@ -240,8 +240,14 @@ class StereoOdometry:
         LOG.warning('velocity state is not a valid Gaussian (%s): velocity re-initialised', why)
         self.estimator.reset()
 
-    def _road_step(self, frame: StereoFrame, prev_calib: StereoCalibration | None, dt: float,
-                   measure: bool, timings: dict[str, float]) -> bool:
+    def _features_plane(self, calib: StereoCalibration) -> tuple[np.ndarray, float] | None:
+        """Ground plane (``fit_ground_plane``) of the tracker's live features, or None."""
+        left, right = self.tracker.feature_points()
+        return fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
+                                self._road_rng)
+
+    def _road_step(self, frame: StereoFrame, dt: float, measure: bool,
+                   timings: dict[str, float]) -> bool:
         """
         Road alignment (``road``, :mod:`~stereo_vo_ros.road_alignment`; not in the papers).
 
@@ -263,8 +269,7 @@ class StereoOdometry:
                                    self.road.first_row(calib, plane))
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
         fused = False
-        if measure and prev_images is not None and plane is not None and \
-                calib.same_as(prev_calib):
+        if measure and prev_images is not None and plane is not None:
             motion = self.road.align(prev_images, images, calib, plane, T_prev_cur, dt)
             if motion is not None:
                 fused = self.estimator.fuse(motion.velocity, motion.covariance,
@@ -274,9 +279,7 @@ class StereoOdometry:
         start = plane.in_frame(T_prev_cur) if plane is not None and measure else None
         plane = self.road.refine_plane(images, calib, start) if start is not None else None
         if plane is None:  # no previous plane, or it was lost: the features' plane
-            left, right = self.tracker.feature_points()
-            found = fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
-                                     self._road_rng)
+            found = self._features_plane(calib)
             if found is not None:
                 plane = self.road.refine_plane(images, calib, RoadPlane(*found))
         self._road_images, self._road_plane = images, plane
@@ -309,9 +312,7 @@ class StereoOdometry:
         if not (pcfg.road_speed_search and self.config.tracker.use_motion_prior) or \
                 prev is None or calib.kind != 'rectified':
             return None  # (the tracker would ignore a prior without use_motion_prior)
-        left, right = self.tracker.feature_points()
-        plane = fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
-                                 self._road_rng)
+        plane = self._features_plane(calib)
         if plane is None:
             return None
         speeds = np.arange(-10.0, pcfg.max_speed + 0.5, 1.0)

@@ -440,6 +440,7 @@ class RoadAligner:
             lp, lc = prev.levels[index], cur.levels[index]
             f, cx, cy = lp.intrinsics(calib)
             K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+            K_inv = np.linalg.inv(K)
             us, vs, X = plane.pixels[index] if plane.pixels is not None else \
                 self._road_pixels(lp, calib, plane)
             need = self.cfg.min_pixels * lp.scale ** 2
@@ -465,7 +466,7 @@ class RoadAligner:
                 # warp. The current image alone (forward additive) converged at a third of the
                 # rate: near the camera it shows the road larger and sharper than the template.
                 H = K @ (T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal) / plane.d) \
-                    @ np.linalg.inv(K)
+                    @ K_inv
                 w = H[2, 0] * us[ok] + H[2, 1] * vs[ok] + H[2, 2]
                 with np.errstate(divide='ignore', invalid='ignore'):
                     a, b = (H[0, 0] - u * H[2, 0]) / w, (H[0, 1] - u * H[2, 1]) / w
@@ -493,9 +494,10 @@ class RoadAligner:
                 / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
             return None
+        scale = _scale(r)
         try:
             # The brightness parameters are marginalised: the motion block of the inverse.
-            cov_free = np.linalg.inv(A)[:k, :k] * _scale(r) ** 2 * self.cfg.covariance_inflation
+            cov_free = np.linalg.inv(A)[:k, :k] * scale ** 2 * self.cfg.covariance_inflation
         except np.linalg.LinAlgError:
             return None
         T = np.linalg.inv(T_cp)
@@ -508,5 +510,4 @@ class RoadAligner:
                 / JACOBIAN_STEP
         # Only the rows and columns of ``measured`` are meant to be fused.
         cov = Jy @ cov_free @ Jy.T
-        return RoadMotion(T, y, 0.5 * (cov + cov.T), measured, int(np.count_nonzero(ok)),
-                          _scale(r))
+        return RoadMotion(T, y, 0.5 * (cov + cov.T), measured, int(np.count_nonzero(ok)), scale)
