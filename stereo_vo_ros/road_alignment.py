@@ -25,10 +25,17 @@ after a Mahalanobis gate. Only rectified input is aligned; without an admissible
 (no road in view, a wall ahead), or when either step does not converge, nothing is measured
 and the pair is estimated as the papers describe.
 
-Pixels compared: every ``road.pixel_step``-th of each pyramid level, on the plane between
+Pixels compared: every ``road.pixel_step``-th of each pyramid level (a lattice fixed to the
+level's full image), on the plane between
 ``road.min_depth_m`` and ``road.max_depth_m`` ahead and within ``road.max_lateral_m`` of the
 optical axis. Frames: the previous / current left camera optical frames (x right, y down,
 z forward), metres; ``T_prev_cur`` is the pose of the current left camera in the previous one.
+
+The time goes to many small array operations (a few thousand pixels each), so the arrays are
+laid out for them: points and Jacobians one row per coordinate or parameter (a (3, N) product
+takes a sixth of the time of (N, 3) @ (3, 3)), 3x3 and 5x5 solves through OpenCV, the lattice
+computed once per level geometry, and a pixel that leaves the view is dropped for the rest of
+the level instead of masking every array at every iteration.
 """
 
 from __future__ import annotations
@@ -47,6 +54,9 @@ from .motion import velocity_from_transform
 MIN_HEIGHT_M = 0.1
 #: Grey-level differences above this are occluders (a vehicle, a barrier) and weigh nothing.
 MAX_DIFFERENCE = 30.0
+#: The blur's kernel reaches this many sigmas either side (OpenCV's default for float
+#: images, four, costs a third more for weights below 0.1 % of the kernel's).
+BLUR_SIGMAS = 3.0
 #: Scale of the Cauchy weights in robust residual scales.
 CAUCHY_SCALES = 2.0
 #: The residual scale is the median of every n-th residual.
@@ -87,9 +97,9 @@ class RoadPlane:
         Height of the optical centre above the plane (m).
     pixels : tuple or None
         Per pyramid level of the pair it was refined on (``RoadAligner.refine_plane``), the
-        grid pixels u, v (N,) of that level and their points (N, 3) on the plane, those whose
-        left and right images agree with the plane (a vehicle on the road does not); None
-        for a plane from elsewhere.
+        grid pixels u, v (N,) of that level, their points (3, N) on the plane and the left
+        image's (value, d/du, d/dv) (N, 3) there, those whose left and right images agree with
+        the plane (a vehicle on the road does not); None for a plane from elsewhere.
 
     """
 
@@ -144,7 +154,7 @@ class RoadLevel:
 
 @dataclass
 class RoadImages:
-    """A rectified stereo pair prepared for the alignment: levels[0] is the input's size."""
+    """A rectified stereo pair prepared for the alignment: levels[0] is the finest."""
 
     levels: list[RoadLevel]
 
@@ -195,8 +205,10 @@ def _weights(r: np.ndarray) -> np.ndarray:
     ``1 / (1 + (r / c)^2)`` with c ``CAUCHY_SCALES`` robust scales (:func:`_scale`); 0 for
     occluders (above ``MAX_DIFFERENCE``).
     """
-    w = 1.0 / (1.0 + (r / (CAUCHY_SCALES * _scale(r))) ** 2)
-    w[np.abs(r) >= MAX_DIFFERENCE] = 0.0
+    c2 = (CAUCHY_SCALES * _scale(r)) ** 2
+    r2 = r * r
+    w = c2 / (c2 + r2)
+    w[r2 >= MAX_DIFFERENCE ** 2] = 0.0
     return w
 
 
@@ -229,6 +241,29 @@ def _projection_jacobians(xn: np.ndarray, yn: np.ndarray, iz: np.ndarray, f: flo
     return np.stack([du[i]() for i in free], axis=1), np.stack([dv[i]() for i in free], axis=1)
 
 
+def _motion_jacobian(gx: np.ndarray, gy: np.ndarray, xn: np.ndarray, yn: np.ndarray,
+                     iz: np.ndarray, f: float, free: list, out: np.ndarray) -> None:
+    """
+    Write the derivatives of an image's values at points into the rows ``out[:len(free)]``.
+
+    ``gx, gy`` (N,) are the image gradient at the points' pixels (grey levels per pixel), the
+    points ``X' = (xn, yn, 1) / iz`` as in :func:`_projection_jacobians`, whose chain rule
+    this is (``gx du + gy dv``) in fewer array operations.
+    """
+    a, b = f * gx, f * gy
+    c = a * xn + b * yn
+    columns = (lambda: a * iz, lambda: b * iz, lambda: -c * iz, lambda: -(c * yn + b),
+               lambda: c * xn + a, lambda: b * xn - a * yn)
+    for j, i in enumerate(free):
+        out[j] = columns[i]()
+
+
+def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """Solve the small system ``A x = b`` ((k, k), (k,)): x (k,), or None when A is singular."""
+    solved, x = cv2.solve(A, b.reshape(-1, 1), flags=cv2.DECOMP_LU)
+    return x.ravel() if solved else None
+
+
 def _exp_se3(delta: np.ndarray) -> np.ndarray:
     """(4, 4) transform of a left perturbation ``(dv (3), dw (3))``: ``X -> R(dw) X + dv``."""
     T = np.eye(4)
@@ -253,6 +288,8 @@ class RoadAligner:
     def __init__(self, cfg: RoadConfig, ransac: RansacConfig) -> None:
         self.cfg = cfg
         self.ransac = ransac
+        #: Per level geometry, the pixels of the level's full image ``_grid`` compares.
+        self._grids: dict = {}
 
     def first_row(self, calib: StereoCalibration, plane: RoadPlane | None) -> int:
         """
@@ -273,26 +310,58 @@ class RoadAligner:
         """
         Build ``road.levels`` pyramid levels of a rectified pair ((H, W) uint8 each).
 
-        Each level is blurred by ``road.blur_px`` (its own pixels) and carries its gradients.
-        Only the rows from ``first_row`` on are prepared (rounded down to the coarsest level).
+        The finest is the input reduced ``road.first_level`` times (``cv2.pyrDown``). Each
+        level is blurred by ``road.blur_px`` (its own pixels) and carries its gradients. Only
+        the rows from ``first_row`` on are prepared (rounded down to the coarsest level).
         """
         sigma = self.cfg.blur_px
+        ksize = 2 * math.ceil(BLUR_SIGMAS * sigma) + 1
         levels = []
-        q = 2 ** (self.cfg.levels - 1)
+        first = self.cfg.first_level
+        q = 2 ** (self.cfg.levels - 1 + first)
         r0 = (min(max(int(first_row), 0), left.shape[0] - 16 * q) // q) * q
         r0 = max(r0, 0)
-        lo, ro = left[r0:].astype(np.float32), right[r0:].astype(np.float32)
-        for k in range(self.cfg.levels):
-            if k:
+        lo, ro = left[r0:], right[r0:]
+        for _ in range(first):
+            lo, ro = cv2.pyrDown(lo), cv2.pyrDown(ro)
+        lo, ro = lo.astype(np.float32), ro.astype(np.float32)
+        for k in range(first, first + self.cfg.levels):
+            if k > first:
                 lo, ro = cv2.pyrDown(lo), cv2.pyrDown(ro)
-            lb = cv2.GaussianBlur(lo, (0, 0), sigma) if sigma > 0 else lo
-            rb = cv2.GaussianBlur(ro, (0, 0), sigma) if sigma > 0 else ro
+            lb = cv2.GaussianBlur(lo, (ksize, ksize), sigma) if sigma > 0 else lo
+            rb = cv2.GaussianBlur(ro, (ksize, ksize), sigma) if sigma > 0 else ro
             levels.append(RoadLevel(
                 lb, cv2.merge([lb, cv2.Sobel(lb, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
                                cv2.Sobel(lb, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)]),
                 cv2.merge([rb, cv2.Sobel(rb, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)]),
                 0.5 ** k, r0 // 2 ** k))
         return RoadImages(levels)
+
+    def _grid(self, level: RoadLevel, calib: StereoCalibration
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Return the pixels of a level compared when they see the road, and their rays.
+
+        Every ``road.pixel_step``-th pixel of every ``road.pixel_step``-th row of the level's
+        full image, counted from pixel (1, 1), inside the level's arrays with one pixel to spare:
+        u, v (N,) (pixels of the level) and the rays' x / z and y / z (N,). The full grid of a
+        level is computed once per calibration and image size (kept in ``_grids``).
+        """
+        f, cx, cy = level.intrinsics(calib)
+        step = self.cfg.pixel_step
+        h, w = level.left.shape
+        key = (f, cx, cy, step, w, level.row0 + h)
+        grid = self._grids.get(key)
+        if grid is None:
+            if len(self._grids) > 8:  # the calibration or the image size changed
+                self._grids.clear()
+            vs, us = np.mgrid[1:level.row0 + h - 1:step, 1:w - 1:step]
+            us, vs = us.ravel().astype(np.float64), vs.ravel().astype(np.float64)
+            grid = self._grids[key] = (us, vs, (us - cx) / f, (vs - cy) / f)
+        row_len = len(range(1, w - 1, step))
+        first = -(-level.row0 // step)  # first lattice row > row0: 1 + step * first
+        last = (level.row0 + h - 3) // step  # last one < row0 + h - 1
+        return tuple(a[first * row_len:(last + 1) * row_len] for a in grid)
 
     def _road_pixels(self, level: RoadLevel, calib: StereoCalibration, plane: RoadPlane
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -302,19 +371,17 @@ class RoadAligner:
         The road is the plane between the depth bounds and within ``road.max_lateral_m`` of
         the optical axis.
 
-        Returns their coordinates u, v (N,) (pixels of the level) and 3-D points (N, 3) (m).
+        Returns their coordinates u, v (N,) (pixels of the level) and 3-D points (3, N) (m),
+        one coordinate per row.
         """
-        f, cx, cy = level.intrinsics(calib)
-        step = self.cfg.pixel_step
-        h, w = level.left.shape
-        vs, us = np.mgrid[level.row0 + 1:level.row0 + h - 1:step, 1:w - 1:step]
-        us, vs = us.ravel().astype(np.float64), vs.ravel().astype(np.float64)
-        ray = np.stack([(us - cx) / f, (vs - cy) / f, np.ones_like(us)], axis=1)
+        us, vs, xr, yr = self._grid(level, calib)
+        n = plane.normal
         with np.errstate(divide='ignore', invalid='ignore'):
-            depth = plane.d / (ray @ plane.normal)
+            depth = plane.d / (n[0] * xr + n[1] * yr + n[2])
         on = (depth > self.cfg.min_depth_m) & (depth < self.cfg.max_depth_m) & \
-            (np.abs(ray[:, 0] * depth) < self.cfg.max_lateral_m)
-        return us[on], vs[on], ray[on] * depth[on, None]
+            (np.abs(xr * depth) < self.cfg.max_lateral_m)
+        depth = depth[on]
+        return us[on], vs[on], np.stack([xr[on] * depth, yr[on] * depth, depth])
 
     def refine_plane(self, images: RoadImages, calib: StereoCalibration, plane: RoadPlane
                      ) -> RoadPlane | None:
@@ -350,24 +417,27 @@ class RoadAligner:
                                                                   1.0 / np.linalg.norm(p)))
             if len(us) < self.cfg.min_pixels * level.scale ** 2:
                 return None
-            ray = X / X[:, 2:3]
-            ref = _sample(level.left, us, vs - level.row0)
-            grids.insert(0, (level, fb, us, vs, ray, ref))
+            ray = X / X[2]  # (3, N), z = 1
+            tmpl = _sample(level.left_grad, us, vs - level.row0)  # value, d/du, d/dv
+            ref = tmpl[:, 0]
+            grids.insert(0, (level, fb, us, vs, ray, tmpl))
             for _ in range(self.cfg.stereo_iterations):
                 r, ok, sampled = self._stereo_residuals(level, fb, us, vs, ray, ref, p, gain,
                                                         offset)
-                if np.count_nonzero(ok) < self.cfg.min_pixels * level.scale ** 2:
+                if len(r) < self.cfg.min_pixels * level.scale ** 2:
                     return None
-                J = np.column_stack([(-fb * gain * sampled[:, 1])[:, None] * ray[ok],
-                                     sampled[:, 0], np.ones_like(r)])
-                Jw = J * _weights(r)[:, None]
-                try:
-                    step = -np.linalg.solve(Jw.T @ J, Jw.T @ r)
-                except np.linalg.LinAlgError:
+                ray_ok = ray if ok is None else ray[:, ok]
+                J = np.empty((5, len(r)))  # one row per parameter
+                J[:3] = (-fb * gain) * sampled[:, 1] * ray_ok
+                J[3] = sampled[:, 0]
+                J[4] = 1.0
+                Jw = J * _weights(r)
+                step = _solve(Jw @ J.T, -(Jw @ r))
+                if step is None:
                     return None
                 p = p + step[:3]
                 gain, offset = gain + step[3], offset + step[4]
-                moved = float(np.sqrt(np.mean((fb * (ray[ok] @ step[:3])) ** 2))) / level.scale
+                moved = float(np.sqrt(np.mean((fb * (step[:3] @ ray_ok)) ** 2))) / level.scale
         norm = float(np.linalg.norm(p))
         if not (np.isfinite(norm) and norm > 0 and moved < PLANE_CONVERGED_PX):
             return None
@@ -377,10 +447,14 @@ class RoadAligner:
         # Per level, the pixels whose left and right images agree with the plane (residual
         # within STEREO_INLIER_SCALES robust scales): a vehicle standing on the road does not.
         pixels = []
-        for level, fb, us, vs, ray, ref in grids:
-            r, ok, _ = self._stereo_residuals(level, fb, us, vs, ray, ref, p, gain, offset)
-            keep = np.flatnonzero(ok)[np.abs(r) < STEREO_INLIER_SCALES * _scale(r)]
-            pixels.append((us[keep], vs[keep], ray[keep] / (ray[keep] @ p)[:, None]))
+        for level, fb, us, vs, ray, tmpl in grids:
+            r, ok, _ = self._stereo_residuals(level, fb, us, vs, ray, tmpl[:, 0], p, gain,
+                                              offset)
+            keep = np.abs(r) < STEREO_INLIER_SCALES * _scale(r)
+            if ok is not None:
+                keep = np.flatnonzero(ok)[keep]
+            ray_keep = ray[:, keep]
+            pixels.append((us[keep], vs[keep], ray_keep / (p @ ray_keep), tmpl[keep]))
         return RoadPlane(out.normal, out.d, tuple(pixels))
 
     @staticmethod
@@ -391,14 +465,18 @@ class RoadAligner:
         Stereo residuals ``g I_R + o - I_L`` (grey levels) of left pixels (us, vs) on plane p.
 
         The disparity of the pixel on ray r (z = 1) is ``fb p . r``; the right camera's gain g
-        and offset o may differ from the left one's. Returns the residuals of the pixels whose
-        match lies inside the right image, that mask (N,) and the right image's samples
-        (value, d/du) there.
+        and offset o may differ from the left one's. ``ray`` is (3, N). Returns the residuals
+        of the pixels whose match lies inside the right image, that mask (N,) (None when all
+        do) and the right image's samples (value, d/du) there.
         """
-        ur = us - fb * (ray @ p)
+        ur = us - fb * (p @ ray)
         ok = (ur > 0) & (ur < level.left.shape[1] - 1)
-        sampled = _sample(level.right_grad, ur[ok], vs[ok] - level.row0)
-        return gain * sampled[:, 0] + offset - ref[ok], ok, sampled
+        if ok.all():
+            ok = None
+        else:
+            ur, vs, ref = ur[ok], vs[ok], ref[ok]
+        sampled = _sample(level.right_grad, ur, vs - level.row0)
+        return gain * sampled[:, 0] + offset - ref, ok, sampled
 
     def align(self, prev: RoadImages, cur: RoadImages, calib: StereoCalibration,
               plane: RoadPlane, T_prev_cur: np.ndarray, dt: float) -> RoadMotion | None:
@@ -435,63 +513,71 @@ class RoadAligner:
         k = len(free)
         T_cp = np.linalg.inv(T_prev_cur)  # maps previous-frame points into the current frame
         gain, offset = 1.0, 0.0
-        moved = np.inf
         for index in reversed(range(len(prev.levels))):
             lp, lc = prev.levels[index], cur.levels[index]
             f, cx, cy = lp.intrinsics(calib)
             K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-            K_inv = np.linalg.inv(K)
-            us, vs, X = plane.pixels[index] if plane.pixels is not None else \
-                self._road_pixels(lp, calib, plane)
+            K_inv = np.array([[1.0 / f, 0.0, -cx / f], [0.0, 1.0 / f, -cy / f], [0.0, 0.0, 1.0]])
+            if plane.pixels is not None:
+                us, vs, X, tmpl = plane.pixels[index]
+            else:
+                us, vs, X = self._road_pixels(lp, calib, plane)
+                tmpl = None
             need = self.cfg.min_pixels * lp.scale ** 2
             if len(us) < need or not dt > 0:
                 return None
-            tmpl = _sample(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
-            iterations = self.cfg.motion_iterations if lp.scale == 1.0 else \
-                self.cfg.coarse_iterations
+            if tmpl is None:
+                tmpl = _sample(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
+            iterations = self.cfg.motion_iterations if index == 0 else self.cfg.coarse_iterations
             for _ in range(iterations):
-                Xc = X @ T_cp[:3, :3].T + T_cp[:3, 3]
+                Xc = T_cp[:3, :3] @ X + T_cp[:3, 3:]
                 with np.errstate(divide='ignore', invalid='ignore'):
-                    iz = 1.0 / Xc[:, 2]
-                u, v = f * Xc[:, 0] * iz + cx, f * Xc[:, 1] * iz + cy
-                ok = (Xc[:, 2] > self.cfg.min_depth_m / 2) & lc.inside(u, v)
-                if np.count_nonzero(ok) < need:
-                    return None
-                u, v, iz, t = u[ok], v[ok], iz[ok], tmpl[ok]
+                    iz = 1.0 / Xc[2]
+                xn, yn = Xc[0] * iz, Xc[1] * iz
+                u, v = f * xn + cx, f * yn + cy
+                ok = (Xc[2] > self.cfg.min_depth_m / 2) & lc.inside(u, v)
+                n_ok = np.count_nonzero(ok)
+                if n_ok < len(ok):
+                    # A pixel that leaves the view is dropped for the rest of the level.
+                    if n_ok < need:
+                        return None
+                    u, v, xn, yn, iz = u[ok], v[ok], xn[ok], yn[ok], iz[ok]
+                    us, vs, X, tmpl = us[ok], vs[ok], X[:, ok], tmpl[ok]
                 cur_s = _sample(lc.left_grad, u, v - lc.row0)
                 # The exposure may change between the pairs: r = g I_cur + o - I_prev.
-                r = gain * cur_s[:, 0] + offset - t[:, 0]
+                r = gain * cur_s[:, 0] + offset - tmpl[:, 0]
                 # ESM (Benhimane & Malis): the mean of the current image's gradient and the
-                # template's, carried into current pixels by the inverse Jacobian of the plane
-                # warp. The current image alone (forward additive) converged at a third of the
-                # rate: near the camera it shows the road larger and sharper than the template.
-                H = K @ (T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal) / plane.d) \
-                    @ K_inv
-                w = H[2, 0] * us[ok] + H[2, 1] * vs[ok] + H[2, 2]
-                with np.errstate(divide='ignore', invalid='ignore'):
-                    a, b = (H[0, 0] - u * H[2, 0]) / w, (H[0, 1] - u * H[2, 1]) / w
-                    c, d = (H[1, 0] - v * H[2, 0]) / w, (H[1, 1] - v * H[2, 1]) / w
-                    det = a * d - b * c
-                    gx = 0.5 * (gain * cur_s[:, 1] + (t[:, 1] * d - t[:, 2] * c) / det)
-                    gy = 0.5 * (gain * cur_s[:, 2] + (t[:, 2] * a - t[:, 1] * b) / det)
-                if not (np.all(np.isfinite(gx)) and np.all(np.isfinite(gy))):
+                # template's, carried into current pixels by the Jacobian of the inverse plane
+                # warp G (current -> previous pixels). The current image alone (forward
+                # additive) converged at a third of the rate: near the camera it shows the
+                # road larger and sharper than the template.
+                G = K @ cv2.invert(T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal)
+                                   / plane.d)[1] @ K_inv
+                with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+                    s = 0.5 / (G[2, 0] * u + G[2, 1] * v + G[2, 2])
+                    tu, tv = tmpl[:, 1] * s, tmpl[:, 2] * s
+                    gx = 0.5 * gain * cur_s[:, 1] + tu * (G[0, 0] - us * G[2, 0]) \
+                        + tv * (G[1, 0] - vs * G[2, 0])
+                    gy = 0.5 * gain * cur_s[:, 2] + tu * (G[0, 1] - us * G[2, 1]) \
+                        + tv * (G[1, 1] - vs * G[2, 1])
+                if not np.isfinite(gx.sum() + gy.sum()):
                     return None
-                Ju, Jv = _projection_jacobians((u - cx) / f, (v - cy) / f, iz, f, free)
-                J = np.hstack([gx[:, None] * Ju + gy[:, None] * Jv, cur_s[:, :1],
-                               np.ones((len(r), 1))])
-                Jw = J * _weights(r)[:, None]
-                A = Jw.T @ J
-                try:
-                    step = -np.linalg.solve(A, Jw.T @ r)
-                except np.linalg.LinAlgError:
+                J = np.empty((k + 2, len(r)))  # one row per parameter
+                _motion_jacobian(gx, gy, xn, yn, iz, f, free, J)
+                J[k] = cur_s[:, 0]
+                J[k + 1] = 1.0
+                Jw = J * _weights(r)
+                A = Jw @ J.T
+                step = _solve(A, -(Jw @ r))
+                if step is None:
                     return None
                 delta = np.zeros(6)
                 delta[free] = step[:k]
                 T_cp = _exp_se3(delta) @ T_cp
                 gain, offset = gain + step[k], offset + step[k + 1]
-            # RMS image motion of the road pixels in the last step (input pixels).
-            moved = float(np.sqrt(np.mean((Ju @ step[:k]) ** 2 + (Jv @ step[:k]) ** 2))) \
-                / lp.scale
+        # RMS image motion of the road pixels in the last step (input pixels).
+        Ju, Jv = _projection_jacobians(xn, yn, iz, f, free)
+        moved = float(np.sqrt(np.mean((Ju @ step[:k]) ** 2 + (Jv @ step[:k]) ** 2))) / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
             return None
         scale = _scale(r)
