@@ -227,6 +227,7 @@ def _finite(result: OdometryResult) -> bool:
         result.velocity_covariance))
 
 
+@pytest.mark.parametrize('road', [False, True], ids=['default', 'road_alignment'])
 @settings(FUZZ, max_examples=100)
 @given(run=stereo_runs())
 # Found by this test: a singular information matrix in the filter escaped as LinAlgError ...
@@ -234,7 +235,13 @@ def _finite(result: OdometryResult) -> bool:
 # ... and coasting made the velocity covariance indefinite (then singular) after 5 frames.
 @example(run=(1.0, 1.0, 0.0, 0.0, [(1, 0.1, 'none')] * 2 + [(0, 0.1, 'black')] * 6 +
               [(1, 0.1, 'none')] * 4, 0))
-def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, run):
+def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, run):
+    """
+    Odd calibrations, stamps and images: only validation errors, finite and valid results.
+
+    Also with the road alignment on (``road.min_pixels`` lowered so that the 320x96 pairs
+    have road enough to align).
+    """
     spec, rendered = frames
     scale, baseline_scale, cx_shift, start, steps, seed = run
     P0, P1 = spec.projections()
@@ -244,7 +251,9 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, run):
         P[0, 2] += cx_shift
     P1[0, 3] = -P0[0, 0] * spec.baseline_m * baseline_scale
     calib = StereoCalibration.from_projections(P0, P1, spec.width, spec.height)
-    vo = StereoOdometry(Config())
+    config = Config().replace(**{'road.enabled': True, 'road.min_pixels': 50}) if road else \
+        Config()
+    vo = StereoOdometry(config)
     rng = np.random.default_rng(seed)
     stamp, index = start, 0
     logging.disable(logging.WARNING)  # the pipeline's warnings are expected here
@@ -260,6 +269,8 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, run):
                 event('ImageError')
                 continue
             event(f'status {result.status.value}')
+            if result.road_fused:
+                event('road motion fused')
             assert edit not in INVALID_EDITS
             assert _finite(result), (result.status, result.message)
             R = result.T_world_cam[:3, :3]
