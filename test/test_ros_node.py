@@ -423,7 +423,9 @@ def test_composed_node_survives_bad_input_and_waits_for_camera_info(sequence, ha
     assert harness.wait_for(lambda: node.diagnostics().level == DiagnosticStatus.ERROR, 5)
     assert 'yuv422' in _values(node.diagnostics())['last_error']
     send_pair(2)
-    time.sleep(0.3)
+    # Pair 3 only once pair 2's odometry is out: sent while the node is still busy, it would
+    # replace pair 2 (newest wins), which a fixed pause did once on a loaded machine.
+    assert harness.wait_for(lambda: len(harness.odom) >= 2, 10)
     send_pair(3)
     harness.settle(3, timeout_s=5)
     # The pair that came before the camera_info is processed once it arrives; the bad one is
