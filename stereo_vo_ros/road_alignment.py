@@ -226,29 +226,15 @@ def _scale(r: np.ndarray) -> float:
     return max(1.4826 * float(np.partition(a, a.size // 2)[a.size // 2]), MIN_SCALE)
 
 
-def _projection_jacobians(xn: np.ndarray, yn: np.ndarray, iz: np.ndarray, f: float,
-                          free: list) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Return the derivatives of the pixel coordinates u and v ((N, k) each) of points.
-
-    The points are ``X' = (xn, yn, 1) / iz`` (current camera frame), perturbed as
-    ``X' -> X' + dv + dw x X'``; the columns are the components ``free`` of (dv, dw).
-    """
-    du = (lambda: f * iz, lambda: 0.0 * iz, lambda: -f * xn * iz, lambda: -f * xn * yn,
-          lambda: f * (1.0 + xn * xn), lambda: -f * yn)
-    dv = (lambda: 0.0 * iz, lambda: f * iz, lambda: -f * yn * iz,
-          lambda: -f * (1.0 + yn * yn), lambda: f * xn * yn, lambda: f * xn)
-    return np.stack([du[i]() for i in free], axis=1), np.stack([dv[i]() for i in free], axis=1)
-
-
 def _motion_jacobian(gx: np.ndarray, gy: np.ndarray, xn: np.ndarray, yn: np.ndarray,
                      iz: np.ndarray, f: float, free: list, out: np.ndarray) -> None:
     """
     Write the derivatives of an image's values at points into the rows ``out[:len(free)]``.
 
-    ``gx, gy`` (N,) are the image gradient at the points' pixels (grey levels per pixel), the
-    points ``X' = (xn, yn, 1) / iz`` as in :func:`_projection_jacobians`, whose chain rule
-    this is (``gx du + gy dv``) in fewer array operations.
+    The points are ``X' = (xn, yn, 1) / iz`` (current camera frame), perturbed as
+    ``X' -> X' + dv + dw x X'``; the rows are the components ``free`` of (dv, dw). ``gx, gy``
+    (N,) are the image gradient at the points' pixels (grey levels per pixel); with
+    ``gx = 1, gy = 0`` (``0, 1``) the rows are the derivatives of the pixel's u (v).
     """
     a, b = f * gx, f * gy
     c = a * xn + b * yn
@@ -413,8 +399,8 @@ class RoadAligner:
         grids = []
         for level in reversed(images.levels):
             fb = level.intrinsics(calib)[0] * calib.baseline_m
-            us, vs, X = self._road_pixels(level, calib, RoadPlane(p / np.linalg.norm(p),
-                                                                  1.0 / np.linalg.norm(p)))
+            norm = float(np.linalg.norm(p))
+            us, vs, X = self._road_pixels(level, calib, RoadPlane(p / norm, 1.0 / norm))
             if len(us) < self.cfg.min_pixels * level.scale ** 2:
                 return None
             ray = X / X[2]  # (3, N), z = 1
@@ -576,8 +562,11 @@ class RoadAligner:
                 T_cp = _exp_se3(delta) @ T_cp
                 gain, offset = gain + step[k], offset + step[k + 1]
         # RMS image motion of the road pixels in the last step (input pixels).
-        Ju, Jv = _projection_jacobians(xn, yn, iz, f, free)
-        moved = float(np.sqrt(np.mean((Ju @ step[:k]) ** 2 + (Jv @ step[:k]) ** 2))) / lp.scale
+        one, zero = np.ones_like(xn), np.zeros_like(xn)
+        Ju, Jv = np.empty((k, len(xn))), np.empty((k, len(xn)))
+        _motion_jacobian(one, zero, xn, yn, iz, f, free, Ju)
+        _motion_jacobian(zero, one, xn, yn, iz, f, free, Jv)
+        moved = float(np.sqrt(np.mean((step[:k] @ Ju) ** 2 + (step[:k] @ Jv) ** 2))) / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
             return None
         scale = _scale(r)
