@@ -1,0 +1,149 @@
+"""
+Time configurations of the pipeline against each other, interleaved, on the KITTI clips.
+
+This machine's speed drifts: the same code timed minutes apart can take 10-40 % longer. Two
+configurations timed at different moments therefore compare badly. This benchmark alternates
+them. Each round times every configuration once on every clip (the order of the
+configurations turns from round to round), and a fixed OpenCV workload that follows the
+machine's speed: the issue's reference pass, ``calcOpticalFlowPyrLK`` of 200 Shi-Tomasi
+corners with 21x21 windows and 4 pyramid levels and no initial flow, from a clip's first left
+image to its second (median of 20 calls; the issue measured 6-10 ms).
+
+Prints, per round, the median total ms per pair of every configuration on every clip (first
+pair left out, image loading excluded, one thread as in ``bench_accuracy.py`` section 2) and
+the reference; then, per configuration, the median over rounds and the verdict against the
+25 ms target; and per variant its extra ms over the first configuration, paired within
+rounds (median and range).
+
+Usage::
+
+    python benchmarks/bench_speed.py [--data ../shared/data] [--rounds 3]
+        [--variant road.enabled=true] [--variant "road.enabled=true road.levels=1"]
+
+The first configuration is the default (``--base`` items change it). Without the KITTI clips
+a rendered urban scene at 1241x376 is timed instead, and the script says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+import sys
+import time
+
+for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ[_var] = '1'  # before NumPy loads its BLAS
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_accuracy import (  # noqa: E402
+    Clip, KITTI_CLIPS, load_real, render, run_clip, SHARED_DATA, TARGET_TOTAL_MS, verdict)
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
+from stereo_vo_ros.errors import ConfigError  # noqa: E402
+from stereo_vo_ros.synthetic import SequenceSpec  # noqa: E402
+
+#: The issue's reference KLT pass: corners, window side (px), pyramid levels above the base.
+REFERENCE_POINTS, REFERENCE_WINDOW, REFERENCE_LEVELS = 200, 21, 3
+REFERENCE_CALLS = 20
+
+
+def reference_ms(clip: Clip) -> float:
+    """Median ms of the reference KLT pass from the clip's first left image to its second."""
+    img0, img1 = clip.frames[0].left, clip.frames[1].left
+    pts = cv2.goodFeaturesToTrack(img0, REFERENCE_POINTS, 0.01, 10).astype(np.float32)
+    times = []
+    for _ in range(REFERENCE_CALLS):
+        t0 = time.perf_counter()
+        cv2.calcOpticalFlowPyrLK(img0, img1, pts, None,
+                                 winSize=(REFERENCE_WINDOW, REFERENCE_WINDOW),
+                                 maxLevel=REFERENCE_LEVELS)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(times))
+
+
+def total_ms(clip: Clip, config: Config) -> float:
+    """Median total ms per pair of one run over the clip (first pair left out)."""
+    run = run_clip(clip, config)
+    return float(np.median([t['total'] for t in run['timings'][1:]]))
+
+
+def parse_config(items: list[str]) -> Config:
+    """Config with ``SECTION.KEY=VALUE`` overrides (values as JSON)."""
+    try:
+        return Config().replace(**overrides_from_items(items))
+    except ConfigError as exc:
+        raise SystemExit(f'bad configuration {items}: {exc}') from None
+
+
+def main() -> int:
+    """Run the benchmark; return the process exit code."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser.add_argument('--data', type=Path, default=SHARED_DATA,
+                        help='folder holding the KITTI clips (default: %(default)s)')
+    parser.add_argument('--rounds', type=int, default=3)
+    parser.add_argument('--base', nargs='*', default=[], metavar='SECTION.KEY=VALUE',
+                        help='overrides of the first configuration (default: none)')
+    parser.add_argument('--variant', action='append', default=[], metavar='"K=V [K=V ...]"',
+                        help='a configuration to compare, as space-separated overrides '
+                        '(repeatable; default: road.enabled=true)')
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    variants = args.variant or ['road.enabled=true']
+    names = [' '.join(args.base) or 'default'] + variants
+    configs = [parse_config(args.base)] + [parse_config(args.base + v.split()) for v in variants]
+
+    clips = []
+    for name in KITTI_CLIPS:
+        if (args.data / name / 'calib.txt').exists():
+            clips.append(load_real(args.data / name))
+        else:
+            print(f'skipping {name}: no clip at {args.data / name}')
+    if not clips:
+        print('no KITTI clip: timing a rendered urban scene (1241x376, 60 frames) instead')
+        clips.append(render(SequenceSpec.preset('urban', n_frames=60), 'urban'))
+    print(f'{len(clips)} clip(s): ' + ', '.join(
+        f'{c.name} ({len(c.frames)} pairs, {c.size[0]}x{c.size[1]})' for c in clips))
+    print('configurations: ' + '; '.join(f'[{i}] {n}' for i, n in enumerate(names)))
+    print(f'cv2 threads {cv2.getNumThreads()}, OMP/OpenBLAS threads 1, '
+          f'{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}')
+
+    # totals[round][config][clip], reference[round]
+    totals = np.full((args.rounds, len(configs), len(clips)), np.nan)
+    reference = np.full(args.rounds, np.nan)
+    print(f'\n{"round":>5s} {"reference ms":>12s}  ' + '  '.join(
+        f'[{i}] {c.name[:14]:>14s}' for i in range(len(configs)) for c in clips))
+    for r in range(args.rounds):
+        reference[r] = reference_ms(clips[0])
+        order = np.roll(np.arange(len(configs)), -r)
+        for i in order:
+            for k, clip in enumerate(clips):
+                totals[r, i, k] = total_ms(clip, configs[i])
+        print(f'{r + 1:5d} {reference[r]:12.2f}  ' + '  '.join(
+            f'{totals[r, i, k]:19.2f}' for i in range(len(configs))
+            for k in range(len(clips))))
+
+    print(f'\nreference KLT pass: median {np.median(reference):.2f} ms, '
+          f'{reference.min():.2f}-{reference.max():.2f} over the rounds (the issue: 6-10 ms)')
+    print('total ms per pair, median over rounds (range):')
+    for i, name in enumerate(names):
+        cells = []
+        for k, clip in enumerate(clips):
+            med = float(np.median(totals[:, i, k]))
+            cells.append(f'{clip.name} {med:.2f} ({totals[:, i, k].min():.2f}-'
+                         f'{totals[:, i, k].max():.2f}) {verdict(med <= TARGET_TOTAL_MS)}')
+        print(f'  [{i}] {name}: ' + '; '.join(cells))
+    for i in range(1, len(configs)):
+        extra = totals[:, i] - totals[:, 0]
+        print(f'  [{i}] - [0], paired within rounds: ' + '; '.join(
+            f'{clip.name} {np.median(extra[:, k]):+.2f} ms ({extra[:, k].min():+.2f} to '
+            f'{extra[:, k].max():+.2f})' for k, clip in enumerate(clips)))
+    print(f'target: total median <= {TARGET_TOTAL_MS:.0f} ms per pair')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
