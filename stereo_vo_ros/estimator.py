@@ -342,19 +342,45 @@ class MotionEstimator:
 
         """
         idx = np.arange(6) if components is None else np.asarray(components, int)
-        innovation = np.asarray(velocity, np.float64)[idx] - self.mean[idx]
-        R = np.asarray(covariance)[np.ix_(idx, idx)]
-        S = self.cov[np.ix_(idx, idx)] + R
-        PHt = self.cov[:, idx]  # P H^T (6, k)
+        return self.fuse_linear(np.eye(6)[idx],
+                                np.asarray(velocity, np.float64)[idx] - self.mean[idx],
+                                np.asarray(covariance)[np.ix_(idx, idx)], gate_chi2)
+
+    def fuse_linear(self, H: np.ndarray, innovation: np.ndarray, R: np.ndarray,
+                    gate_chi2: float) -> bool:
+        """
+        Kalman update of the velocity state with a linear(ised) measurement.
+
+        Parameters
+        ----------
+        H : np.ndarray
+            (k, 6) measurement rows.
+        innovation : np.ndarray
+            (k,) measured minus predicted values (``z - h(mean)``).
+        R : np.ndarray
+            (k, k) measurement covariance.
+        gate_chi2 : float
+            The measurement is rejected (state unchanged) when its squared Mahalanobis distance
+            ``innovation^T S^-1 innovation`` is not below this.
+
+        Returns
+        -------
+        bool: whether it was fused.
+
+        """
+        H = np.asarray(H, np.float64).reshape(-1, 6)
+        innovation = np.asarray(innovation, np.float64).reshape(-1)
+        R = np.asarray(R, np.float64).reshape(len(innovation), len(innovation))
+        PHt = self.cov @ H.T  # (6, k)
+        S = H @ PHt + R
         try:
             m2 = float(innovation @ np.linalg.solve(S, innovation))
             gain = np.linalg.solve(S, PHt.T).T  # P H^T S^-1 (S symmetric)
         except np.linalg.LinAlgError:
             return False
-        if not (np.isfinite(m2) and m2 < gate_chi2):
+        if not (np.isfinite(m2) and m2 < gate_chi2 and np.all(np.isfinite(gain))):
             return False
         self.mean = self.mean + gain @ innovation
-        H = np.eye(6)[idx]
         I_KH = np.eye(6) - gain @ H
         cov = I_KH @ self.cov @ I_KH.T + gain @ R @ gain.T  # Joseph form
         self.cov = 0.5 * (cov + cov.T)

@@ -3,8 +3,8 @@ The images-to-odometry pipeline: one object, one call per stereo pair.
 
 ``StereoOdometry(config).process(frame) -> OdometryResult`` runs
 
-    tracker (paper 2) -> bucketing -> RANSAC + ISPKF (paper 1) -> road alignment (fused)
-    -> pose integration
+    tracker (paper 2) -> bucketing -> RANSAC + ISPKF (paper 1) -> rolling-vehicle prior
+    (fused) -> road alignment (fused) -> pose integration
 
 and handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
 inflated covariance for at most ``pipeline.max_lost_time_s``), calibration that changes between
@@ -31,6 +31,7 @@ from .motion import rotation_from_rates, TransferModel, transform_from_velocity
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
 from .road_alignment import RoadAligner, RoadImages, RoadPlane
 from .tracker import StereoTracker
+from .vehicle_motion import lateral_constraint
 
 LOG = logging.getLogger(__name__)
 
@@ -218,13 +219,15 @@ class StereoOdometry:
                 self.estimator.reset()
                 status = TrackingStatus.LOST
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
+        vehicle_fused = ok and self._vehicle_step(dt)
         road_fused = self._road_step(frame, dt, ok and not calib_changed, timings)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._commit(stamp, calib, status)
         return self._result(stamp, status, t_start, timings, corr=corr,
                             inliers=est.inliers if est is not None else None,
                             iterations=est.iterations if est is not None else 0,
-                            message=message, road_fused=road_fused)
+                            message=message, road_fused=road_fused,
+                            vehicle_fused=vehicle_fused)
 
     # -- steps -------------------------------------------------------------------------
     def _check_velocity_state(self) -> None:
@@ -245,6 +248,21 @@ class StereoOdometry:
         left, right = self.tracker.feature_points()
         return fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
                                 self._road_rng)
+
+    def _vehicle_step(self, dt: float) -> bool:
+        """
+        Fuse the rolling-vehicle prior (``vehicle``, :mod:`~stereo_vo_ros.vehicle_motion`).
+
+        A Kalman update with the pseudo-measurement ``0 = c(y)``, linearised at the features'
+        estimate, standard deviation ``vehicle.lateral_speed_std``. Returns whether it was fused.
+        """
+        vcfg = self.config.vehicle
+        if not vcfg.nonholonomic or not dt > 0:
+            return False
+        value, row = lateral_constraint(self.estimator.mean, dt, vcfg.lever_arm_m)
+        return self.estimator.fuse_linear(row[None], np.array([-value]),
+                                          np.array([[vcfg.lateral_speed_std ** 2]]),
+                                          vcfg.gate_chi2)
 
     def _road_step(self, frame: StereoFrame, dt: float, measure: bool,
                    timings: dict[str, float]) -> bool:
@@ -373,7 +391,8 @@ class StereoOdometry:
     def _result(self, stamp: float, status: TrackingStatus, t_start: float,
                 timings: dict[str, float], corr: Correspondences | None = None,
                 inliers: np.ndarray | None = None, iterations: int = 0, message: str = '',
-                accepted: bool = True, road_fused: bool = False) -> OdometryResult:
+                accepted: bool = True, road_fused: bool = False,
+                vehicle_fused: bool = False) -> OdometryResult:
         # Velocity in the CURRENT camera frame: rotate by the frame-to-frame rotation.
         v = self.estimator.mean
         R = rotation_from_rates(v[3:], self._last_dt)
@@ -389,5 +408,5 @@ class StereoOdometry:
             velocity=Rb @ v, velocity_covariance=Rb @ self.estimator.cov @ Rb.T, status=status,
             n_tracked=n_tracked, n_inliers=n_inl, iterations=iterations, timings_ms=timings,
             message=message, features=corr, inliers=inliers, accepted=accepted,
-            road_fused=road_fused)
+            road_fused=road_fused, vehicle_fused=vehicle_fused)
         return res

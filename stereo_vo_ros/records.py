@@ -152,6 +152,8 @@ class OdometryResult:
         the previous one and nothing should be published for it.
     road_fused : bool
         Whether the road alignment (``road`` section) was fused into this pair's motion.
+    vehicle_fused : bool
+        Whether the rolling-vehicle prior (``vehicle`` section) was fused into it.
 
     """
 
@@ -170,3 +172,4 @@ class OdometryResult:
     inliers: np.ndarray | None = None
     accepted: bool = True
     road_fused: bool = False
+    vehicle_fused: bool = False

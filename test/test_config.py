@@ -77,3 +77,12 @@ def test_command_line_overrides():
         config_mod.overrides_from_items(['road.enabled'])
     with pytest.raises(ConfigError, match='unknown parameter'):
         Config().replace(**config_mod.overrides_from_items(['road.bogus=1']))
+
+
+def test_road_vehicle_overlay_turns_on_the_road_parts_only():
+    """config/road_vehicle.yaml: the road alignment and the vehicle prior, the rest default."""
+    cfg = load(REPO / 'config' / 'road_vehicle.yaml')
+    assert cfg.road.enabled and cfg.vehicle.nonholonomic
+    changed = {name for (name, value, _), (_, default, _) in zip(cfg.items(), Config().items())
+               if value != default}
+    assert changed == {'road.enabled', 'vehicle.nonholonomic'}

@@ -227,7 +227,7 @@ def _finite(result: OdometryResult) -> bool:
         result.velocity_covariance))
 
 
-@pytest.mark.parametrize('road', [False, True], ids=['default', 'road_alignment'])
+@pytest.mark.parametrize('road', [False, True], ids=['default', 'road_vehicle'])
 @settings(FUZZ, max_examples=100)
 @given(run=stereo_runs())
 # Found by this test: a singular information matrix in the filter escaped as LinAlgError ...
@@ -239,8 +239,8 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, r
     """
     Odd calibrations, stamps and images: only validation errors, finite and valid results.
 
-    Also with the road alignment on (``road.min_pixels`` lowered so that the 320x96 pairs
-    have road enough to align).
+    Also as on a road vehicle: the road alignment (``road.min_pixels`` lowered so that the
+    320x96 pairs have road enough to align) and the rolling-vehicle prior on.
     """
     spec, rendered = frames
     scale, baseline_scale, cx_shift, start, steps, seed = run
@@ -251,8 +251,8 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, r
         P[0, 2] += cx_shift
     P1[0, 3] = -P0[0, 0] * spec.baseline_m * baseline_scale
     calib = StereoCalibration.from_projections(P0, P1, spec.width, spec.height)
-    config = Config().replace(**{'road.enabled': True, 'road.min_pixels': 50}) if road else \
-        Config()
+    config = Config().replace(**{'road.enabled': True, 'road.min_pixels': 50,
+                                 'vehicle.nonholonomic': True}) if road else Config()
     vo = StereoOdometry(config)
     rng = np.random.default_rng(seed)
     stamp, index = start, 0
@@ -271,6 +271,8 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, r
             event(f'status {result.status.value}')
             if result.road_fused:
                 event('road motion fused')
+            if result.vehicle_fused:
+                event('vehicle prior fused')
             assert edit not in INVALID_EDITS
             assert _finite(result), (result.status, result.message)
             R = result.T_world_cam[:3, :3]

@@ -28,7 +28,8 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = 'stereo_vo_ros'
 EXECUTABLES = ('stereo_vo', 'stereo_vo_node')
-SHARE_FILES = ('package.xml', 'config/stereo_vo.yaml', 'config/fastdds_large_images.xml',
+SHARE_FILES = ('package.xml', 'config/stereo_vo.yaml', 'config/road_vehicle.yaml',
+               'config/fastdds_large_images.xml',
                'launch/stereo_vo.launch.py')
 ROS_REQUIREMENT = re.compile(r'^(ros-|rclpy|rosidl|ament|[a-z0-9_-]*_msgs$|[a-z0-9_-]*-msgs$)')
 SITE_PACKAGES = f'lib/python{sys.version_info.major}.{sys.version_info.minor}/site-packages'

@@ -296,6 +296,28 @@ def test_node_process_remapping_exact_sync_and_sensor_qos(sequence, bag):
         h.close()
 
 
+def test_node_process_with_the_shipped_road_vehicle_overlay(sequence, bag):
+    """The README's command for a road vehicle: both shipped parameter files, in that order."""
+    _, frames = sequence
+    h = Harness()
+    try:
+        player = BagPlayer(h.node, bag, topics=IMAGE_TOPICS + INFO_TOPICS, rate=1.0)
+        with node_process('--params-file', str(REPO_ROOT / 'config' / 'stereo_vo.yaml'),
+                          '--params-file', str(REPO_ROOT / 'config' / 'road_vehicle.yaml'),
+                          '-p', 'use_sim_time:=true', '-p', 'ros.qos:=reliable') as proc:
+            _wait_for_node(h, player)
+            _paced_play(h, player, stop_ns=int(round(frames[12].stamp_s * 1e9)))
+            h.settle(12)
+            assert h.wait_for(lambda: any(
+                _values(d.status[0]).get('vehicle_fused') == 'True' for d in h.diagnostics
+                if d.status and 'stereo_vo' in d.status[0].name), 5.0)
+        assert proc['returncode'] == 0, proc['output']
+        assert len(h.odom) == 12, proc['output']
+        _check_odometry(h.odom, frames)
+    finally:
+        h.close()
+
+
 def test_fastdds_large_images_profile_is_valid_and_carries_pairs(sequence, bag):
     """The shipped Fast DDS profile: parsed without error, talks to a default participant."""
     _, frames = sequence

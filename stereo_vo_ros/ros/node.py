@@ -736,6 +736,7 @@ class StereoVONode(Node):
             'inliers': res.n_inliers if res is not None else 0,
             'iterations': res.iterations if res is not None else 0,
             'road_fused': bool(res.road_fused) if res is not None else False,
+            'vehicle_fused': bool(res.vehicle_fused) if res is not None else False,
             'processing_ms': float(res.timings_ms.get('total', np.nan)) if res is not None
             else float('nan'),
             'latency_ms': self._last_latency_ms,
