@@ -148,3 +148,13 @@ def test_pipeline_fuses_the_prior_only_when_asked(highway_frames):
             out.append(abs(lateral_constraint(y, DT)[0]))
         return np.median(out)
     assert residual(runs[True][0]) < 0.5 * residual(runs[False][0])
+
+
+def test_prior_switches_at_run_time(highway_frames):
+    """``vehicle.nonholonomic`` is settable at run time (the node's parameter callback)."""
+    frames = highway_frames
+    vo = StereoOdometry(Config())
+    before = [vo.process(f).vehicle_fused for f in frames[:8]]
+    vo.update_config(Config().replace(**{'vehicle.nonholonomic': True}))
+    after = [vo.process(f).vehicle_fused for f in frames[8:16]]
+    assert not any(before) and sum(after) >= 6
