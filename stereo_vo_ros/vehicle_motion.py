@@ -21,7 +21,8 @@ component is what that gives::
 The pitch and the vertical speed are left alone (a road is not flat over a pair; the road
 alignment measures them). The features hardly tell a small yaw from a small lateral motion
 when most of them are far: on the rendered highway the yaw error of single pairs came out with
-a spread of 11.5 mdeg, and 5.3 mdeg with this prior (seed 0, road alignment on).
+a spread of 11.5 mdeg, and 5.3 mdeg with this prior (seed 0, road alignment on; one-off
+script).
 """
 
 from __future__ import annotations
