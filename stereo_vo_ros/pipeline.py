@@ -282,9 +282,8 @@ class StereoOdometry:
             return False
         t0 = time.perf_counter()
         prev_images, plane = self._road_images, self._road_plane
-        images = self.road.prepare(self.tracker.as_grey(frame.left),
-                                   self.tracker.as_grey(frame.right),
-                                   self.road.first_row(calib, plane))
+        left, right = self.tracker.last_pair()  # this pair, as the tracker converted it
+        images = self.road.prepare(left, right, self.road.first_row(calib, plane))
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
         fused = False
         if measure and prev_images is not None and plane is not None:

@@ -482,6 +482,10 @@ class StereoTracker:
         """Return the left image of the last pair as tracked ((H, W) uint8, read-only) or None."""
         return None if self._prev is None else self._prev[0]
 
+    def last_pair(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Return the left and right images of the last pair as tracked ((H, W) uint8) or None."""
+        return self._prev
+
     def feature_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Return ideal left and right pixels (N, 2) of the features alive after the last pair."""
         f = self._feats
