@@ -312,6 +312,79 @@ def align_se3(source_xyz: np.ndarray, target_xyz: np.ndarray) -> np.ndarray:
     return out
 
 
+def scale_from_steps(gt: np.ndarray, est: np.ndarray) -> float:
+    """
+    One scale factor of an estimated trajectory: least squares over its step lengths.
+
+    Parameters
+    ----------
+    gt, est : array_like
+        (N, 4, 4) or (N, 3, 4) ``T_world_cam`` (metres), same N >= 2. Not modified.
+
+    Returns
+    -------
+    float
+        ``s = sum(|dp_gt| |dp_est|) / sum(|dp_est|^2)`` over consecutive positions (unitless,
+        true metres per estimated metre); NaN when the estimate does not move.
+
+    """
+    g, e = _pair(gt, est)
+    step_gt = np.linalg.norm(np.diff(g[:, :3, 3], axis=0), axis=1)
+    step_est = np.linalg.norm(np.diff(e[:, :3, 3], axis=0), axis=1)
+    den = float(np.dot(step_est, step_est))
+    return float(np.dot(step_gt, step_est) / den) if den > 0.0 else float('nan')
+
+
+def scaled_trajectory(poses: np.ndarray, scale: float) -> np.ndarray:
+    """
+    Return a trajectory with every position multiplied by a scale (rotations unchanged).
+
+    Parameters
+    ----------
+    poses : array_like
+        (N, 4, 4) or (N, 3, 4) ``T_world_cam`` (metres). Not modified.
+    scale : float
+        Factor (unitless), e.g. from ``scale_from_steps``.
+
+    Returns
+    -------
+    np.ndarray
+        (N, 4, 4) float64 copy; every relative translation is scaled by the same factor.
+
+    """
+    out = as_poses(poses).copy()
+    out[:, :3, 3] *= scale
+    return out
+
+
+def kitti_odometry_error_scale_aligned(gt: np.ndarray, est: np.ndarray
+                                       ) -> tuple[float, float, int, float]:
+    """
+    KITTI metric after one scale factor fitted to the whole trajectory.
+
+    A rig whose true baseline or focal differs from its calibration scales every estimated
+    translation by one factor that the images cannot reveal; this removes it.
+
+    Parameters
+    ----------
+    gt, est : array_like
+        (N, 4, 4) or (N, 3, 4) ``T_world_cam`` (metres), same N >= 2. Not modified.
+
+    Returns
+    -------
+    t_rel_pct, r_rel_deg_per_100m, segments
+        As ``kitti_odometry_error`` of ``scaled_trajectory(est, scale)``.
+    scale : float
+        The factor of ``scale_from_steps`` (true over estimated length).
+
+    """
+    scale = scale_from_steps(gt, est)
+    if not np.isfinite(scale):
+        return float('nan'), float('nan'), 0, scale
+    t_rel, r_rel, n = kitti_odometry_error(gt, scaled_trajectory(est, scale))
+    return t_rel, r_rel, n, scale
+
+
 def ate_rmse(gt: np.ndarray, est: np.ndarray) -> float:
     """
     Absolute trajectory error: RMSE of positions after rigid alignment (no scale).

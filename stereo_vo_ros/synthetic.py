@@ -19,7 +19,12 @@ Exactness: every pixel samples the scene along the ray through its centre, so a 
 seen at pixel (u, v) with depth d in the left image is seen at (u - fx * B / d, v) in the right
 image and where the poses project it in any other frame (static surfaces only). Textures are
 prefiltered (rip-maps chosen from the pixel footprint) so that distant surfaces do not alias;
-silhouette edges are point sampled unless ``SequenceSpec.supersample`` is 2 or more.
+silhouette edges are point sampled unless ``SequenceSpec.supersample`` is 2 or more. This holds
+for an exact rig; ``SequenceSpec``'s ``rig_*`` fields render a rig that departs from the
+calibration it hands out (true baseline and focal scaled; the right image warped by the
+homography of a residual rotation and right-camera intrinsics error, ``right_homography``),
+and its ``gain_*`` and ``vignetting*`` fields add independent per-camera exposure and
+vignetting.
 
 Restrictions that keep the renderer fast (a per-column ray cast): the cameras stay level
 (yaw and height vary, pitch and roll are zero) and every box is taller than the camera.
@@ -109,6 +114,39 @@ class SequenceSpec:
         Stamp of the first frame (s).
     seed : int
         Seed of everything random: same spec, same images.
+    rig_roll_deg, rig_pitch_deg, rig_yaw_deg : float
+        Residual rotation (deg) of the rendered right camera against the calibration, about
+        its optical-frame axes z (roll), x (pitch) and y (yaw): the true right camera is
+        ``R = R_z(roll) R_x(pitch) R_y(yaw)`` (its axes as columns in the nominal right camera
+        frame). Positive pitch tilts it up, so the right image rows move down by about
+        ``f * pitch`` (0.02 deg at 718 px: +0.25 px, v_R - v_L); positive yaw turns it right,
+        so right columns move left by ``f * yaw`` (0.008 deg: disparity +0.10 px); positive
+        roll turns the camera's x axis down, so the image content turns the other way (rows
+        move by ``-roll * (u - cx)``: up on the right half of the image).
+    rig_focal_ratio : float
+        Relative focal error of the right camera: its true focal is the left one times
+        ``1 + rig_focal_ratio`` (3e-4 = +0.03 %), about the principal point.
+    rig_disparity_offset_px : float
+        Disparity offset (pixels): the true right principal point x is ``cx - offset``, so a
+        point's measured disparity ``u_L - u_R`` is its true one plus the offset.
+    rig_baseline_ratio, rig_focal_scale : float
+        The true baseline and the true focal of both cameras are the nominal ones times
+        ``1 + ratio``; the images are rendered with the true values, ``calibration()`` returns
+        the nominal ones (metric scale error, unobservable from the images).
+    gain_jitter : float
+        Independent per-camera, per-frame gain: each camera's gain in each frame is multiplied
+        by a factor drawn uniformly (not log-uniformly) in ``[1 - j, 1 + j]``; 0: none.
+    gain_offset_jitter : float
+        Independent per-camera, per-frame additive offset (grey levels), uniform in
+        ``[-o, o]``; 0: none.
+    vignetting : float
+        Strength of a cos^4-like radial falloff: gain ``(1 + k r^2)^-2`` with ``r`` the
+        distance from the image centre in units of the half diagonal and ``k`` chosen so that
+        the gain at the corners is ``1 - vignetting``; 0: none.
+    vignetting_mismatch : float
+        Stereo difference of the vignetting: the right camera's strength is the left one times
+        ``1 + m`` and its falloff centre is shifted by ``m`` times (10 % of the width, 5 % of
+        the height) to the right and down.
 
     """
 
@@ -134,6 +172,17 @@ class SequenceSpec:
     block_m: float = 80.0
     start_time_s: float = 0.0
     seed: int = 0
+    rig_roll_deg: float = 0.0
+    rig_pitch_deg: float = 0.0
+    rig_yaw_deg: float = 0.0
+    rig_focal_ratio: float = 0.0
+    rig_disparity_offset_px: float = 0.0
+    rig_baseline_ratio: float = 0.0
+    rig_focal_scale: float = 0.0
+    gain_jitter: float = 0.0
+    gain_offset_jitter: float = 0.0
+    vignetting: float = 0.0
+    vignetting_mismatch: float = 0.0
 
     def __post_init__(self) -> None:
         checks = (
@@ -163,6 +212,24 @@ class SequenceSpec:
              f'baseline_m must be within [0.05, 2], got {self.baseline_m}'),
             (60.0 <= self.block_m <= 200.0,
              f'block_m must be within [60, 200], got {self.block_m}'),
+            (max(abs(self.rig_roll_deg), abs(self.rig_pitch_deg), abs(self.rig_yaw_deg)) <= 5.0,
+             'rig_roll_deg, rig_pitch_deg and rig_yaw_deg must be within [-5, 5], got '
+             f'{self.rig_roll_deg}, {self.rig_pitch_deg}, {self.rig_yaw_deg}'),
+            (max(abs(self.rig_focal_ratio), abs(self.rig_baseline_ratio),
+                 abs(self.rig_focal_scale)) <= 0.1,
+             'rig_focal_ratio, rig_baseline_ratio and rig_focal_scale must be within '
+             f'[-0.1, 0.1], got {self.rig_focal_ratio}, {self.rig_baseline_ratio}, '
+             f'{self.rig_focal_scale}'),
+            (abs(self.rig_disparity_offset_px) <= 20.0,
+             f'rig_disparity_offset_px must be within [-20, 20], got '
+             f'{self.rig_disparity_offset_px}'),
+            (0.0 <= self.gain_jitter < 1.0 and self.gain_offset_jitter >= 0.0,
+             f'gain_jitter must be within [0, 1) and gain_offset_jitter not negative, got '
+             f'{self.gain_jitter}, {self.gain_offset_jitter}'),
+            (0.0 <= self.vignetting < 1.0 and 0.0 <= self.vignetting * (
+                1.0 + self.vignetting_mismatch) < 1.0 and self.vignetting_mismatch > -1.0,
+             f'vignetting (times 1 + vignetting_mismatch) must be within [0, 1), got '
+             f'{self.vignetting}, {self.vignetting_mismatch}'),
         )
         for ok, message in checks:
             if not ok:
@@ -170,7 +237,12 @@ class SequenceSpec:
 
     @classmethod
     def preset(cls, name: str, **overrides: object) -> 'SequenceSpec':
-        """Return the named preset spec: urban, highway, exposure or demo, with overrides."""
+        """
+        Return the named preset spec (a key of ``PRESETS``) with some fields overridden.
+
+        Presets: urban, highway, exposure, demo; urban_rig and highway_rig (``RIG_ERROR``);
+        urban_photometric and highway_photometric (``PHOTOMETRIC``); urban_rig_photometric.
+        """
         if name not in PRESETS:
             raise ConfigError(f'unknown synthetic preset {name!r}; known: {sorted(PRESETS)}')
         fields = {f.name for f in dataclasses.fields(cls)}
@@ -187,6 +259,54 @@ class SequenceSpec:
     def focal_px(self) -> float:
         """Focal length fx = fy (pixels), KITTI's scaled with the width."""
         return KITTI_FOCAL_PX * self.width / KITTI_WIDTH
+
+    @property
+    def true_focal_px(self) -> float:
+        """Focal length the images are rendered with (pixels): ``focal_px`` x (1 + scale)."""
+        return self.focal_px * (1.0 + self.rig_focal_scale)
+
+    @property
+    def true_baseline_m(self) -> float:
+        """Baseline the images are rendered with (m): ``baseline_m`` x (1 + ratio)."""
+        return self.baseline_m * (1.0 + self.rig_baseline_ratio)
+
+    @property
+    def exact_rig(self) -> bool:
+        """Tell whether the images are rendered with exactly the nominal calibration."""
+        return not any((self.rig_roll_deg, self.rig_pitch_deg, self.rig_yaw_deg,
+                        self.rig_focal_ratio, self.rig_disparity_offset_px,
+                        self.rig_baseline_ratio, self.rig_focal_scale))
+
+    def right_homography(self) -> np.ndarray:
+        """
+        Homography from the exact right image to the rendered (erroneous) right image.
+
+        Returns
+        -------
+        np.ndarray
+            (3, 3) float64 ``H = K_r R^T K^-1`` (pixels to pixels), with ``K`` the true
+            intrinsics of both cameras (``true_focal_px``, nominal principal point), ``K_r``
+            the right camera's (focal x (1 + rig_focal_ratio), principal point x shifted by
+            ``-rig_disparity_offset_px``) and ``R`` the residual rotation (see the class).
+            Identity for an exact rig.
+
+        """
+        f = self.true_focal_px
+        cx, cy = self.principal_point_px
+        K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        fr = f * (1.0 + self.rig_focal_ratio)
+        K_r = np.array([[fr, 0.0, cx - self.rig_disparity_offset_px], [0.0, fr, cy],
+                        [0.0, 0.0, 1.0]])
+        r, p, y = (math.radians(a) for a in (self.rig_roll_deg, self.rig_pitch_deg,
+                                             self.rig_yaw_deg))
+        R_z = np.array([[math.cos(r), -math.sin(r), 0.0], [math.sin(r), math.cos(r), 0.0],
+                        [0.0, 0.0, 1.0]])
+        R_x = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(p), -math.sin(p)],
+                        [0.0, math.sin(p), math.cos(p)]])
+        R_y = np.array([[math.cos(y), 0.0, math.sin(y)], [0.0, 1.0, 0.0],
+                        [-math.sin(y), 0.0, math.cos(y)]])
+        R = R_z @ R_x @ R_y
+        return K_r @ R.T @ np.linalg.inv(K)
 
     @property
     def principal_point_px(self) -> tuple[float, float]:
@@ -225,6 +345,28 @@ PRESETS: dict[str, SequenceSpec] = {
     'demo': SequenceSpec(name='demo', width=620, height=188, n_frames=60, scene='city',
                          speed_mps=10.0, turns=True, turn_probability=1.0, moving_objects=4),
 }
+#: A good real rig's residual calibration error (the sizes of the user report): right image
+#: rows off by +0.25 px (pitch) and up to +-0.11 px at the image edges (roll), disparity off
+#: by +0.15 px at the centre (yaw 0.10 px + principal point 0.05 px), right focal +0.03 %
+#: (+-0.18 px in u, +-0.06 px in v at the image edges), true baseline +0.3 % and true focal
+#: -0.2 % against the calibration (metric scale about +0.1 %).
+RIG_ERROR = {'rig_pitch_deg': 0.02, 'rig_roll_deg': 0.01, 'rig_yaw_deg': 0.008,
+             'rig_focal_ratio': 3e-4, 'rig_disparity_offset_px': 0.05,
+             'rig_baseline_ratio': 0.003, 'rig_focal_scale': -0.002}
+#: Independent automatic exposure of both cameras: gain x U[0.7, 1.3] and offset U[-5, 5]
+#: grey levels per camera and frame, vignetting to 70 % at the corners (the right camera's
+#: 10 % stronger and off centre).
+PHOTOMETRIC = {'gain_jitter': 0.3, 'gain_offset_jitter': 5.0, 'vignetting': 0.3,
+               'vignetting_mismatch': 0.1}
+PRESETS.update({
+    'urban_rig': PRESETS['urban'].replace(name='urban_rig', **RIG_ERROR),
+    'highway_rig': PRESETS['highway'].replace(name='highway_rig', **RIG_ERROR),
+    'urban_photometric': PRESETS['urban'].replace(name='urban_photometric', **PHOTOMETRIC),
+    'highway_photometric': PRESETS['highway'].replace(name='highway_photometric',
+                                                      **PHOTOMETRIC),
+    'urban_rig_photometric': PRESETS['urban'].replace(name='urban_rig_photometric',
+                                                      **RIG_ERROR, **PHOTOMETRIC),
+})
 
 
 @dataclass(frozen=True)
@@ -1336,6 +1478,13 @@ def _scene_for(spec: SequenceSpec) -> Scene:
     return Scene(spec)
 
 
+def _cubic_weights(frac: np.ndarray) -> list[np.ndarray]:
+    """Keys cubic convolution weights (a = -0.5) of the taps -1, 0, 1, 2 at ``frac``."""
+    t = frac
+    return [((-0.5 * t + 1.0) * t - 0.5) * t, (1.5 * t - 2.5) * t * t + 1.0,
+            ((-1.5 * t + 2.0) * t + 0.5) * t, (0.5 * t - 0.5) * t * t]
+
+
 # ---------------------------------------------------------------------------------------------
 # Renderer
 # ---------------------------------------------------------------------------------------------
@@ -1397,9 +1546,12 @@ class StereoRenderer:
         self.poses = self.scene.trajectory.poses(self._times)
         ss = spec.supersample
         cx, cy = spec.principal_point_px
-        self._cam = _Camera(spec.width, spec.height, spec.focal_px, cx, cy)
-        self._cam_ss = _Camera(spec.width * ss, spec.height * ss, spec.focal_px * ss,
+        f = spec.true_focal_px
+        self._cam = _Camera(spec.width, spec.height, f, cx, cy)
+        self._cam_ss = _Camera(spec.width * ss, spec.height * ss, f * ss,
                                (cx + 0.5) * ss - 0.5, (cy + 0.5) * ss - 0.5)
+        self._H_right = None if spec.exact_rig else spec.right_homography()
+        self._vignette = [self._vignetting(cam) for cam in range(2)]
         faces = self.scene.boxes.faces()
         faces['moving'] = np.zeros(len(faces['q0']), bool)
         self._static_faces = faces
@@ -1432,6 +1584,51 @@ class StereoRenderer:
         right = left * (1.0 + spec.stereo_gain_mismatch * np.sin(2 * np.pi * t / 5.0 + ph[2]))
         return np.stack([left, right], 1)
 
+    def _vignetting(self, cam: int) -> np.ndarray | None:
+        """(H, W) float32 vignetting gain of one camera (1 at its centre), None if none."""
+        spec = self.spec
+        if spec.vignetting <= 0:
+            return None
+        m = spec.vignetting_mismatch * cam
+        strength = spec.vignetting * (1.0 + m)
+        k = (1.0 - strength) ** -0.5 - 1.0
+        H, W = spec.height, spec.width
+        u0 = (W - 1) / 2.0 + m * 0.1 * W
+        v0 = (H - 1) / 2.0 + m * 0.05 * H
+        r2 = (((np.arange(W) - u0) ** 2)[None, :] + ((np.arange(H) - v0) ** 2)[:, None]) / (
+            ((W - 1) / 2.0) ** 2 + ((H - 1) / 2.0) ** 2)
+        return ((1.0 + k * r2) ** -2).astype(np.float32)
+
+    def _warp_right(self, img: np.ndarray, nearest: bool = False) -> np.ndarray:
+        """
+        Apply the rig error homography to an exact right image (same size, border replicate).
+
+        Bilinear interpolation in float32 with exact weights: OpenCV's ``warpPerspective`` and
+        ``remap`` round the source coordinates to 1/32 pixel, too coarse for errors of a few
+        hundredths of a pixel. ``nearest`` picks the nearest pixel (depth, masks).
+        """
+        H, W = img.shape
+        Hinv = np.linalg.inv(self._H_right)
+        u = np.arange(W, dtype=np.float64)[None, :]
+        v = np.arange(H, dtype=np.float64)[:, None]
+        w = Hinv[2, 0] * u + Hinv[2, 1] * v + Hinv[2, 2]
+        x = np.clip((Hinv[0, 0] * u + Hinv[0, 1] * v + Hinv[0, 2]) / w, 0, W - 1)
+        y = np.clip((Hinv[1, 0] * u + Hinv[1, 1] * v + Hinv[1, 2]) / w, 0, H - 1)
+        if nearest:
+            return img[np.rint(y).astype(np.intp), np.rint(x).astype(np.intp)]
+        x0 = np.floor(x).astype(np.intp)
+        y0 = np.floor(y).astype(np.intp)
+        wx = _cubic_weights((x - x0).astype(np.float32))
+        wy = _cubic_weights((y - y0).astype(np.float32))
+        out = np.zeros((H, W), np.float32)
+        for j in range(4):
+            rows = np.clip(y0 + (j - 1), 0, H - 1)
+            acc = np.zeros((H, W), np.float32)
+            for i in range(4):
+                acc += img[rows, np.clip(x0 + (i - 1), 0, W - 1)] * wx[i]
+            out += acc * wy[j]
+        return out
+
     # -- public ---------------------------------------------------------------------------
     def render(self, index: int, depth: bool = False) -> RenderedFrame:
         """Render stereo pair ``index`` (0-based); with ``depth`` also depth maps and masks."""
@@ -1445,7 +1642,7 @@ class StereoRenderer:
         faces = self._faces_at(t)
         images, depths, statics = [], [], []
         for cam in range(2):
-            cxz = np.array([T[0, 3], T[2, 3]]) + cam * spec.baseline_m * np.array(
+            cxz = np.array([T[0, 3], T[2, 3]]) + cam * spec.true_baseline_m * np.array(
                 [math.cos(yaw), -math.sin(yaw)])
             img, dep, stat = self._view(self._cam_ss, cxz, yaw, hc, faces, shade=True,
                                         geometry=depth and spec.supersample == 1)
@@ -1454,6 +1651,11 @@ class StereoRenderer:
                 if depth:
                     _, dep, stat = self._view(self._cam, cxz, yaw, hc, faces, shade=False,
                                               geometry=True)
+            if cam == 1 and self._H_right is not None:
+                img = self._warp_right(img)
+                if dep is not None:
+                    dep = self._warp_right(dep, nearest=True)
+                    stat = self._warp_right(stat, nearest=True)
             images.append(self._sensor(img, index, cam))
             depths.append(dep)
             statics.append(stat)
@@ -1474,11 +1676,26 @@ class StereoRenderer:
         return faces
 
     def _sensor(self, img: np.ndarray, index: int, cam: int) -> np.ndarray:
-        """Optical blur, exposure gain, sensor noise and 8-bit quantisation."""
+        """
+        Optical blur, vignetting, exposure gain and offset, sensor noise, 8-bit quantisation.
+
+        The per-frame gain and offset jitter of each camera come from their own random stream
+        (seed, index, camera), so a frame's images do not depend on the number of frames.
+        """
         spec = self.spec
         if spec.blur_sigma_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), spec.blur_sigma_px)
-        img = img * np.float32(self._gains[index, cam])
+        gain = float(self._gains[index, cam])
+        offset = 0.0
+        if spec.gain_jitter > 0 or spec.gain_offset_jitter > 0:
+            jitter = np.random.default_rng([spec.seed, index, cam, 17]).uniform(-1.0, 1.0, 2)
+            gain *= 1.0 + spec.gain_jitter * jitter[0]
+            offset = spec.gain_offset_jitter * jitter[1]
+        if self._vignette[cam] is not None:
+            img = img * self._vignette[cam]
+        img = img * np.float32(gain)
+        if offset:
+            img += np.float32(offset)
         if spec.noise_std > 0:
             rng = np.random.default_rng([spec.seed, index, cam, 5])
             img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(spec.noise_std)

@@ -461,3 +461,185 @@ def test_synthetic_module_needs_no_ros_packages() -> None:
                          check=True, timeout=120)
     loaded = set(json.loads(out.stdout.strip().splitlines()[-1]))
     assert not loaded & {'rosbags', 'rclpy', 'sensor_msgs', 'nav_msgs'}
+
+
+# -- rig error and per-camera exposure ----------------------------------------------------------
+@pytest.fixture(scope='module')
+def rig_base() -> SequenceSpec:
+    """Return the clean demo spec at 620x188 (f = 359 px) with a few frames."""
+    return SequenceSpec.preset('demo', width=620, height=188, n_frames=6, noise_std=0.0)
+
+
+@pytest.fixture(scope='module')
+def rig_pair(rig_base: SequenceSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return the exact left and right images of frame 3 and Shi-Tomasi corners (N, 2)."""
+    pair = StereoRenderer(rig_base).render(3)
+    pts = cv2.goodFeaturesToTrack(pair.left, 400, 0.01, 5).reshape(-1, 2)
+    return pair.left, pair.right, pts
+
+
+def klt(a: np.ndarray, b: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Track pixels from image a to image b with pyramidal KLT.
+
+    Returns
+    -------
+    tuple of np.ndarray
+        (N, 2) float32 positions in b (pixels) and (N,) bool status.
+
+    """
+    nxt, st, _ = cv2.calcOpticalFlowPyrLK(
+        a, b, pts.reshape(-1, 1, 2).astype(np.float32), None, winSize=(15, 15), maxLevel=2,
+        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6))
+    return nxt.reshape(-1, 2), st.ravel() == 1
+
+
+def test_exact_rig_renders_the_same_images_as_before() -> None:
+    """All rig and photometric fields at 0 leave the images bit for bit as they were."""
+    import hashlib
+    expected = {'demo': 'a43a7074748fabca', 'exposure': '1512b26873c0050e'}
+    for name, digest in expected.items():
+        renderer = StereoRenderer(SequenceSpec.preset(name, width=320, height=96, n_frames=6))
+        h = hashlib.sha256()
+        for index in (0, 5):
+            pair = renderer.render(index)
+            h.update(pair.left.tobytes())
+            h.update(pair.right.tobytes())
+        assert h.hexdigest()[:16] == digest, name
+    assert SequenceSpec().exact_rig
+    np.testing.assert_allclose(SequenceSpec().right_homography(), np.eye(3), atol=1e-12)
+
+
+@pytest.mark.parametrize('field, value, du, dv', [
+    ('rig_pitch_deg', 0.02, 0.0, 1.0),  # rows move down by f * pitch
+    ('rig_yaw_deg', 0.008, -1.0, 0.0),  # right columns move left: disparity + f * yaw
+    ('rig_disparity_offset_px', 0.1, -1.0, 0.0),  # disparity + offset
+])
+def test_rig_error_moves_the_right_image_as_predicted(rig_base: SequenceSpec, rig_pair: tuple,
+                                                      field: str, value: float, du: float,
+                                                      dv: float) -> None:
+    """Pitch moves right-image rows, yaw and the disparity offset move its columns."""
+    left, right, pts = rig_pair
+    spec = rig_base.replace(**{field: value})
+    size = value if field == 'rig_disparity_offset_px' else spec.focal_px * math.radians(value)
+    warped = StereoRenderer(spec).render(3)
+    assert warped.left.tobytes() == left.tobytes()
+    # against the exact right image, from its own corners (KLT from sub-pixel positions is
+    # biased by about 10 % of a sub-pixel shift): the shift itself, to a few thousandths
+    a = cv2.goodFeaturesToTrack(right, 400, 0.01, 5).reshape(-1, 2)
+    b, ok = klt(right, warped.right, a)
+    shift = np.median((b - a)[ok], axis=0)
+    # yaw moves a pixel at normalised x by f * yaw * (1 + x^2); x is up to 0.86 here
+    tol = 0.25 * size if field == 'rig_yaw_deg' else 0.02 * size + 0.002
+    assert shift[0] == pytest.approx(du * size, abs=tol)
+    assert shift[1] == pytest.approx(dv * size, abs=0.02 * size + 0.002)
+    pred = cv2.perspectiveTransform(a.reshape(-1, 1, 2).astype(np.float64),
+                                    spec.right_homography()).reshape(-1, 2)
+    assert np.median(np.abs(b - pred)[ok]) < 0.005
+    # left to right stereo matches: v_R - v_L and disparity move by the same amount
+    m0, ok0 = klt(left, right, pts)
+    m1, ok1 = klt(left, warped.right, pts)
+    ok = ok0 & ok1
+    change = np.median(m1[ok] - m0[ok], axis=0)
+    np.testing.assert_allclose(change, shift, atol=0.02)
+
+
+def test_roll_and_focal_ratio_scale_with_the_pixel_position(rig_base: SequenceSpec,
+                                                            rig_pair: tuple) -> None:
+    """Roll turns the right image (rows move by -roll (u - cx)); the focal ratio scales it."""
+    _, right, _ = rig_pair
+    cx, cy = rig_base.principal_point_px
+    a = cv2.goodFeaturesToTrack(right, 400, 0.01, 5).reshape(-1, 2)
+    for field, value in (('rig_roll_deg', 0.1), ('rig_focal_ratio', 2e-3)):
+        warped = StereoRenderer(rig_base.replace(**{field: value})).render(3).right
+        b, ok = klt(right, warped, a)
+        d = b[ok] - a[ok]
+        slope_v = np.polyfit(a[ok, 0] - cx, d[:, 1], 1)[0]
+        slope_u = np.polyfit(a[ok, 0] - cx, d[:, 0], 1)[0]
+        if field == 'rig_roll_deg':
+            assert slope_v == pytest.approx(-math.radians(value), rel=0.05)
+            assert abs(slope_u) < 1e-4
+        else:
+            assert slope_u == pytest.approx(value, rel=0.05)
+            assert np.polyfit(a[ok, 1] - cy, d[:, 1], 1)[0] == pytest.approx(value, rel=0.15)
+
+
+def test_rig_scale_error_renders_with_the_true_baseline_and_focal(rig_base: SequenceSpec
+                                                                  ) -> None:
+    """Baseline and focal scale render the true geometry; the calibration stays nominal."""
+    spec = rig_base.replace(rig_baseline_ratio=0.05, rig_focal_scale=-0.02)
+    assert spec.calibration().same_as(rig_base.calibration())
+    assert spec.true_baseline_m == pytest.approx(rig_base.baseline_m * 1.05)
+    assert spec.true_focal_px == pytest.approx(rig_base.focal_px * 0.98)
+    exact = StereoRenderer(rig_base).render(2, depth=True)
+    off = StereoRenderer(spec).render(2, depth=True)
+    ground = np.isfinite(exact.depth_left[-40:])
+    # ground rows: z = f h / (v - cy), so the depth of a row scales with the focal
+    ratio = off.depth_left[-40:][ground] / exact.depth_left[-40:][ground]
+    assert np.median(ratio) == pytest.approx(0.98, rel=1e-5)
+    pts = cv2.goodFeaturesToTrack(off.left, 300, 0.01, 5).reshape(-1, 2)
+    m, ok = klt(off.left, off.right, pts)
+    px = np.round(pts[ok]).astype(int)
+    z = off.depth_left[px[:, 1], px[:, 0]]
+    good = np.isfinite(z)
+    ratio = (pts[ok, 0] - m[ok, 0])[good] * z[good] / (spec.true_focal_px * spec.true_baseline_m)
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.01)
+
+
+def test_rig_presets_exist_and_hand_out_the_nominal_calibration() -> None:
+    """The rig and photometric presets load with a seed; the calibration is the nominal one."""
+    for name in ('urban_rig', 'highway_rig', 'urban_photometric', 'highway_photometric',
+                 'urban_rig_photometric'):
+        spec = SequenceSpec.preset(name, seed=3)
+        assert spec.name == name and spec.seed == 3
+        base = 'highway' if name.startswith('highway') else 'urban'
+        assert spec.calibration().same_as(PRESETS[base].calibration())
+        assert spec.exact_rig == ('rig' not in name)
+        assert (spec.gain_jitter > 0) == ('photometric' in name)
+    with pytest.raises(ConfigError):
+        SequenceSpec(gain_jitter=1.5)
+    with pytest.raises(ConfigError):
+        SequenceSpec(rig_pitch_deg=10.0)
+
+
+def test_gain_jitter_is_independent_per_camera_and_deterministic(rig_base: SequenceSpec
+                                                                 ) -> None:
+    """Each camera's gain and offset jump independently per frame, the same for one seed."""
+    spec = rig_base.replace(gain_jitter=0.3, gain_offset_jitter=5.0)
+    clean = StereoRenderer(rig_base)
+    one, two = StereoRenderer(spec), StereoRenderer(spec)
+    other = StereoRenderer(spec.replace(seed=1))
+    fits = []
+    for index in range(4):
+        c, a, b = clean.render(index), one.render(index), two.render(index)
+        assert a.left.tobytes() == b.left.tobytes() and a.right.tobytes() == b.right.tobytes()
+        for cam in ('left', 'right'):
+            x = getattr(c, cam).astype(float)
+            y = getattr(a, cam).astype(float)
+            ok = (x > 20) & (x < 180) & (y > 5) & (y < 250)
+            gain, offset = np.polyfit(x[ok], y[ok], 1)
+            assert 0.69 < gain < 1.31 and abs(offset) < 6.0
+            np.testing.assert_allclose(y[ok], gain * x[ok] + offset, atol=2.0)
+            fits.append((gain, offset))
+    fits = np.array(fits)
+    assert np.ptp(fits[:, 0]) > 0.1 and np.ptp(fits[0::2, 0] - fits[1::2, 0]) > 0.05
+    assert other.render(0).left.tobytes() != one.render(0).left.tobytes()
+
+
+def test_vignetting_darkens_the_corners_more_in_the_right_camera(rig_base: SequenceSpec
+                                                                 ) -> None:
+    """Vignetting: gain 1 at the centre, 1 - strength at the corners; right one stronger."""
+    spec = rig_base.replace(vignetting=0.3, vignetting_mismatch=0.2, blur_sigma_px=0.0)
+    renderer = StereoRenderer(spec)
+    left, right = renderer._vignette
+    h, w = left.shape
+    assert left.max() == pytest.approx(1.0, abs=1e-3)
+    for corner in ((0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1)):
+        assert left[corner] == pytest.approx(0.7, abs=1e-3)
+    assert right.mean() < left.mean()
+    assert np.unravel_index(np.argmax(right), right.shape)[1] > (w - 1) / 2 + 0.02 * w - 1
+    clean = StereoRenderer(rig_base.replace(blur_sigma_px=0.0)).render(1)
+    pair = renderer.render(1)
+    x = clean.left.astype(float)
+    ok = (x > 20) & (x < 245)
+    np.testing.assert_allclose(pair.left[ok], (x * left)[ok], atol=1.0)
