@@ -3,7 +3,8 @@
 #
 # Creates <repo>/.venv (or $STEREO_VO_VENV) if missing and installs, non-editable,
 # the package with its "ros" and "test" extras, the ament linters with the flake8
-# plugins and pydocstyle they need, and colcon with its ROS extensions.
+# plugins and pydocstyle they need, colcon with its ROS extensions, and tf2_msgs (generated
+# by scripts/build_tf2_msgs.sh: it is not on PyPI).
 # A stamp in the venv makes a second run quick: dependencies are reinstalled only when
 # this file, setup.py, setup.cfg or package.xml change, and the package itself only when
 # one of its files changes.
@@ -109,11 +110,16 @@ svo_setup_venv() {
         _svo_clean_build
         _svo_pip install --upgrade "${REPO}[ros,test]" "${STEREO_VO_TOOLS[@]}"
         _svo_install_project
+        bash "$REPO/scripts/build_tf2_msgs.sh" "$VENV"
         echo "$deps_hash" > "$deps_stamp"
         echo "$pkg_hash" > "$pkg_stamp"
     elif [ "$(cat "$pkg_stamp" 2> /dev/null)" != "$pkg_hash" ]; then
         _svo_log "package files changed: reinstalling stereo_vo_ros (no dependencies)"
         _svo_install_project
         echo "$pkg_hash" > "$pkg_stamp"
+    fi
+    # tf2_msgs (for /tf) is not on PyPI: scripts/build_tf2_msgs.sh generates it into the venv.
+    if ! "$PY" -c 'from tf2_msgs.msg import TFMessage' > /dev/null 2>&1; then
+        bash "$REPO/scripts/build_tf2_msgs.sh" "$VENV"
     fi
 }
