@@ -49,7 +49,7 @@ setup(
     entry_points={
         'console_scripts': [
             'stereo_vo = stereo_vo_ros.cli:main',
-            'stereo_vo_node = stereo_vo_ros.ros.node:main',
+            'stereo_vo_node = stereo_vo_ros.ros:node_main',
         ],
     },
 )

@@ -10,8 +10,16 @@ namespace, topic remappings, a parameter file and bag time::
         params_file:=/path/to/stereo_vo.yaml use_sim_time:=true
 
 Arguments: ``namespace``, ``node_name``, ``params_file`` (default: the installed
-``config/stereo_vo.yaml``), ``use_sim_time``, ``log_level`` and the remapping targets
-``left_image``, ``right_image``, ``left_info``, ``right_info``, ``odom``, ``path``.
+``config/stereo_vo.yaml``), ``use_sim_time``, ``log_level``, ``dds_profile`` and the
+remapping targets ``left_image``, ``right_image``, ``left_info``, ``right_info``, ``odom``,
+``path``.
+
+``dds_profile`` is the Fast DDS XML profile of the node's process. Empty (the default), the
+node starts with its own receive profile (``config/fastdds_node.xml``: images over UDP with a
+16 MB receive buffer, so that no publisher loses large images to it) when the kernel allows
+such a buffer; a path starts it with that profile instead, e.g. the installed
+``config/fastdds_large_images.xml`` (shared memory with a 16 MB segment), which is the one to
+give the process that publishes the images.
 """
 
 import os
@@ -55,6 +63,9 @@ def generate_launch_description() -> LaunchDescription:
                               description='Use /clock (bag replay).'),
         DeclareLaunchArgument('log_level', default_value='info',
                               description='Logger level: debug, info, warn, error.'),
+        DeclareLaunchArgument('dds_profile', default_value='',
+                              description='Fast DDS XML profile of the node process; empty: '
+                              'the node chooses (config/fastdds_node.xml when possible).'),
     ]
     arguments += [DeclareLaunchArgument(name, default_value=default, description=doc)
                   for name, default, doc in remaps]
@@ -72,5 +83,6 @@ def generate_launch_description() -> LaunchDescription:
         ],
         remappings=[(default, LaunchConfiguration(name)) for name, default, _ in remaps],
         arguments=['--ros-args', '--log-level', LaunchConfiguration('log_level')],
+        additional_env={'FASTRTPS_DEFAULT_PROFILES_FILE': LaunchConfiguration('dds_profile')},
     )
     return LaunchDescription(arguments + [node])

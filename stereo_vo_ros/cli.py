@@ -175,9 +175,15 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Synthetic bag -> node (real rclpy) -> trajectory, metrics and plot."""
-    from .ros.demo import run_demo
-    summary = run_demo(Path(args.out), frames=args.frames, preset=args.preset,
-                       config=_config(args), timeout_s=args.timeout)
+    from .ros import is_ours, missing_ros
+    try:
+        from .ros.demo import run_demo
+        summary = run_demo(Path(args.out), frames=args.frames, preset=args.preset,
+                           config=_config(args), timeout_s=args.timeout)
+    except ModuleNotFoundError as exc:  # rclpy and the messages are imported when it starts
+        if is_ours(exc):
+            raise
+        raise missing_ros(exc, 'the demo (it runs the ROS node)') from None
     _dump_json(summary)
     return 0 if summary.get('ok') else 1
 

@@ -395,7 +395,7 @@ class RosConfig:
     base_frame: str = _f('base_link', 'Robot body frame (REP-105) used as child frame.')
     camera_frame: str = _f(
         '', 'Left camera optical frame; empty: the header frame_id of the left image.')
-    publish_tf: bool = _f(True, 'Broadcast odom -> base_frame on /tf when tf2_ros exists.')
+    publish_tf: bool = _f(True, 'Broadcast odom -> base_frame on /tf (needs tf2_msgs).')
     invert_tf: bool = _f(False, 'Broadcast base_frame -> odom instead (for another parent).')
     base_from_camera_xyz: list = _f(
         [0.0, 0.0, 0.0], 'Fallback translation of the left camera in the base frame (m) '
@@ -403,8 +403,13 @@ class RosConfig:
     base_from_camera_rpy_deg: list = _f(
         [-90.0, 0.0, -90.0], 'Fallback rotation base <- camera as roll, pitch, yaw (deg); the '
         'default is the standard optical-to-body rotation (z forward -> x forward).')
-    qos: str = _f('sensor_data', 'QoS of the inputs: sensor_data (best effort) or reliable.',
-                  choices=('sensor_data', 'reliable'))
+    qos: str = _f(
+        'auto', 'Reliability of the image subscriptions: auto (reliable when every publisher of '
+        'the image topics offers reliable, best effort otherwise; re-checked every second), '
+        'sensor_data (best effort) or reliable.', choices=('auto', 'sensor_data', 'reliable'))
+    image_transport: str = _f(
+        'raw', 'Image input: raw (sensor_msgs/Image) or compressed (sensor_msgs/CompressedImage '
+        'on <image topic>/compressed, jpeg or png).', choices=('raw', 'compressed'))
     sync: str = _f('approximate', 'Stereo pairing: exact or approximate stamps.',
                    choices=('exact', 'approximate'))
     sync_slop_s: float = _f(0.005, 'Largest stamp difference of an approximate pair (s).',

@@ -25,3 +25,7 @@ class ImageError(StereoVOError, ValueError):
 
 class DatasetError(StereoVOError):
     """A sequence (KITTI folder, rosbag2, correspondence file) cannot be read."""
+
+
+class MissingDependencyError(StereoVOError):
+    """A package that a feature needs is not installed (e.g. rclpy without the ROS extra)."""

@@ -179,7 +179,7 @@ def test_pip_console_scripts(installed: importlib.metadata.Distribution) -> None
     scripts = {ep.name: ep.value for ep in installed.entry_points
                if ep.group == 'console_scripts'}
     assert scripts == {'stereo_vo': 'stereo_vo_ros.cli:main',
-                       'stereo_vo_node': 'stereo_vo_ros.ros.node:main'}
+                       'stereo_vo_node': 'stereo_vo_ros.ros:node_main'}
 
 
 def test_pip_installs_every_module_and_share_file(

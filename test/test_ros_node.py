@@ -39,6 +39,7 @@ from stereo_vo_ros.ros.node import StereoVONode
 from stereo_vo_ros.ros.player import BagPlayer
 from stereo_vo_ros.ros.process import node_process as node_subprocess, with_pythonpath
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec
+from tf2_msgs.msg import TFMessage
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DOMAIN_ID = domain_id()
@@ -231,6 +232,8 @@ def test_bag_replay_into_node_process_with_sim_time_and_reset(sequence, bag, har
     params.write_text(to_yaml(Config().replace(**{'ros.qos': 'reliable'})))
     player = BagPlayer(harness.node, bag, topics=IMAGE_TOPICS + INFO_TOPICS, rate=1.0)
     split_ns = int(round(frames[SPLIT].stamp_s * 1e9))
+    tf_messages = []
+    harness.node.create_subscription(TFMessage, '/tf', tf_messages.append, 100)
     with node_process('--params-file', str(params), '-p', 'use_sim_time:=true') as proc:
         _wait_for_node(harness, player)
         stats = _paced_play(harness, player, stop_ns=split_ns)
@@ -266,12 +269,24 @@ def test_bag_replay_into_node_process_with_sim_time_and_reset(sequence, bag, har
                        for s in sim)
     values = _values(ours[-1].status[0])
     assert values['tracking_state'] == 'ok' and int(values['inliers']) >= 8
-    # Neither tf2_ros nor tf2_msgs here: one clear warning, no silent assumption.
-    assert proc['output'].count('NOT broadcast on /tf') == 1
+    # odom -> base_link on /tf (tf2_msgs/TFMessage, as tf2_ros sends it), one per odometry,
+    # stamped like it and with its pose.
+    assert 'NOT broadcast on /tf' not in proc['output']
+    transforms = {_stamp_ns(t): t for m in tf_messages for t in m.transforms}
+    for odom in first + second:
+        tf = transforms[_stamp_ns(odom)]
+        assert (tf.header.frame_id, tf.child_frame_id) == ('odom', 'base_link')
+        p, q, r = odom.pose.pose.position, odom.pose.pose.orientation, tf.transform.rotation
+        assert np.allclose([p.x, p.y, p.z], [tf.transform.translation.x,
+                                             tf.transform.translation.y,
+                                             tf.transform.translation.z], atol=1e-12)
+        assert np.allclose([q.x, q.y, q.z, q.w], [r.x, r.y, r.z, r.w], atol=1e-12)
+    # No camera mounting on /tf_static here: the parameters' one, said once.
     assert 'ros.base_from_camera_rpy_deg=[-90.0, 0.0, -90.0]' in proc['output']
 
 
-def test_node_process_remapping_exact_sync_and_sensor_qos(sequence, bag):
+def test_node_process_remapping_exact_sync_and_auto_qos(sequence, bag):
+    """Remapped topics, exact sync, default QoS: the reliable player gets a reliable reader."""
     _, frames = sequence
     remaps = {t: '/cam' + t for t in IMAGE_TOPICS + INFO_TOPICS}
     args = ['-p', 'use_sim_time:=true', '-p', 'ros.sync:=exact', '-r', 'odom:=/vo/odom']
@@ -285,13 +300,18 @@ def test_node_process_remapping_exact_sync_and_sensor_qos(sequence, bag):
             _wait_for_node(h, player, '/vo/odom')
             assert h.node.count_subscribers('/left/image_rect') == 0
             assert h.node.count_subscribers('/cam/left/image_rect') == 1
-            _paced_play(h, player, timeout_s=2.0, stop_ns=int(round(frames[15].stamp_s * 1e9)))
+            _paced_play(h, player, timeout_s=5.0, stop_ns=int(round(frames[15].stamp_s * 1e9)))
             h.settle(15)
+            h.wait_for(lambda: any('input_qos' in _values(d.status[0]) for d in h.diagnostics
+                                   if d.status and 'stereo_vo' in d.status[0].name), 5.0)
         assert proc['returncode'] == 0, proc['output']
-        # Best-effort (sensor data) QoS may lose a few large images on a loaded machine.
-        assert len(h.odom) >= 8, proc['output']
+        # The player publishes reliably, so auto subscribes reliably: every pair arrives.
+        assert len(h.odom) == 15, proc['output']
         _check_odometry(h.odom, frames)
-        assert 'exact sync, sensor_data QoS' in proc['output']
+        assert 'exact sync, auto QoS' in proc['output']
+        ours = [_values(d.status[0]) for d in h.diagnostics
+                if d.status and 'stereo_vo' in d.status[0].name]
+        assert ours[-1]['input_qos'] == 'reliable (ros.qos auto)', ours[-1]
     finally:
         h.close()
 

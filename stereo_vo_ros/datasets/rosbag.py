@@ -5,11 +5,15 @@ A stereo bag holds ``sensor_msgs/Image`` and ``sensor_msgs/CameraInfo`` for the 
 right camera and optionally the ground truth as ``nav_msgs/Odometry`` (pose of the left camera
 optical frame in ``world``, the first left camera frame). Left and right images pair up when
 their header stamps are equal. Images may pad their rows: ``step`` is always honoured.
+Recorded robot bags often hold ``sensor_msgs/CompressedImage`` instead (image_transport
+``compressed``: topic ``<image topic>/compressed``, jpeg or png); the reader takes those when
+asked to (``transport='compressed'``) or when the raw image topics are absent.
 """
 
 from __future__ import annotations
 
 from contextlib import contextmanager
+import dataclasses
 from dataclasses import dataclass
 import logging
 from pathlib import Path
@@ -22,6 +26,7 @@ from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterEr
 from rosbags.typesys import get_typestore, Stores
 from scipy.spatial.transform import Rotation
 
+from .compressed import compress_grey, grey_from_compressed
 from ..camera import StereoCalibration
 from ..errors import CalibrationError, DatasetError, ImageError
 from ..records import StereoFrame
@@ -29,6 +34,9 @@ from ..records import StereoFrame
 logger = logging.getLogger(__name__)
 
 IMAGE_TYPE = 'sensor_msgs/msg/Image'
+COMPRESSED_TYPE = 'sensor_msgs/msg/CompressedImage'
+#: Suffix of image_transport's compressed topic.
+COMPRESSED_SUFFIX = '/compressed'
 INFO_TYPE = 'sensor_msgs/msg/CameraInfo'
 ODOM_TYPE = 'nav_msgs/msg/Odometry'
 
@@ -55,12 +63,31 @@ class BagTopics:
     left_info: str = '/left/camera_info'
     right_info: str = '/right/camera_info'
     odometry: str = '/ground_truth/odom'
+    #: ``raw`` (sensor_msgs/Image on the image topics) or ``compressed``
+    #: (sensor_msgs/CompressedImage on ``<image topic>/compressed``).
+    transport: str = 'raw'
 
     @classmethod
     def from_config(cls, ros: Any) -> 'BagTopics':
-        """Take the image and camera_info topics from a ``RosConfig`` section."""
+        """Take the image and camera_info topics and the transport from a ``RosConfig``."""
         return cls(left_image=ros.left_image_topic, right_image=ros.right_image_topic,
-                   left_info=ros.left_info_topic, right_info=ros.right_info_topic)
+                   left_info=ros.left_info_topic, right_info=ros.right_info_topic,
+                   transport=ros.image_transport)
+
+    def compressed(self) -> 'BagTopics':
+        """Return the same topics, read as compressed images."""
+        return dataclasses.replace(self, transport='compressed')
+
+    @property
+    def images(self) -> tuple[str, str]:
+        """Left and right image topics as stored for this transport."""
+        suffix = COMPRESSED_SUFFIX if self.transport == 'compressed' else ''
+        return self.left_image + suffix, self.right_image + suffix
+
+    @property
+    def image_type(self) -> str:
+        """Message type of the image topics for this transport."""
+        return COMPRESSED_TYPE if self.transport == 'compressed' else IMAGE_TYPE
 
 
 # ---------------------------------------------------------------------------------------------
@@ -155,7 +182,8 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
                      storage: str = 'sqlite3', encoding: str = 'mono8',
                      topics: BagTopics = BagTopics(),
                      frame_ids: tuple[str, str] = ('camera_left_optical', 'camera_right_optical'),
-                     world_frame: str = 'world', row_padding: int = 0) -> int:
+                     world_frame: str = 'world', row_padding: int = 0,
+                     jpeg_quality: int = 90) -> int:
     """
     Write stereo frames as a rosbag2 with images, camera infos and optional ground truth.
 
@@ -173,15 +201,19 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
     storage : str
         ``sqlite3`` or ``mcap``.
     encoding : str
-        One of ``ENCODINGS`` (grey replicated into colour encodings).
+        One of ``ENCODINGS`` (grey replicated into colour encodings); with
+        ``topics.transport == 'compressed'``, ``jpeg`` or ``png`` instead (grey images as
+        sensor_msgs/CompressedImage on ``<image topic>/compressed``).
     topics : BagTopics
-        Topic names.
+        Topic names and image transport.
     frame_ids : tuple of str
         Header frame ids of the left and the right camera.
     world_frame : str
         Header frame id of the ground truth.
     row_padding : int
         Extra bytes at the end of every image row (``step`` > width * bytes per pixel).
+    jpeg_quality : int
+        Quality of compressed jpeg images (1..100).
 
     Returns
     -------
@@ -191,19 +223,24 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
     """
     if storage not in STORAGES:
         raise DatasetError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
-    if encoding not in ENCODINGS:
-        raise DatasetError(f'encoding must be one of {sorted(ENCODINGS)}, got {encoding!r}')
+    compressed = topics.transport == 'compressed'
+    known = ('jpeg', 'png') if compressed else tuple(ENCODINGS)
+    if encoding not in known:
+        raise DatasetError(f'encoding must be one of {sorted(known)} for {topics.transport} '
+                           f'images, got {encoding!r}')
     ts = get_typestore(Stores.ROS2_JAZZY)
     T = ts.types
-    Header, Image, CameraInfo = (T['std_msgs/msg/Header'], T[IMAGE_TYPE], T[INFO_TYPE])
+    Header, CameraInfo = T['std_msgs/msg/Header'], T[INFO_TYPE]
+    image_type = topics.image_type
+    left_topic, right_topic = topics.images
     pose_iter = iter(poses) if poses is not None else None
     count = 0
     try:
         with Writer(Path(path), version=Writer.VERSION_LATEST,
                     storage_plugin=STORAGES[storage]) as writer:
             conns = {name: writer.add_connection(topic, msgtype, typestore=ts) for name, topic,
-                     msgtype in (('li', topics.left_image, IMAGE_TYPE),
-                                 ('ri', topics.right_image, IMAGE_TYPE),
+                     msgtype in (('li', left_topic, image_type),
+                                 ('ri', right_topic, image_type),
                                  ('lc', topics.left_info, INFO_TYPE),
                                  ('rc', topics.right_info, INFO_TYPE))}
             if pose_iter is not None:
@@ -215,9 +252,14 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
                 for side, img, cam, fid in (('l', frame.left, calib.left, frame_ids[0]),
                                             ('r', frame.right, calib.right, frame_ids[1])):
                     header = Header(stamp=stamp, frame_id=fid)
-                    data, step = buffer_from_grey(img, encoding, row_padding)
-                    msg = Image(header=header, height=img.shape[0], width=img.shape[1],
-                                encoding=encoding, is_bigendian=0, step=step, data=data)
+                    if compressed:
+                        fmt, data = compress_grey(img, encoding, jpeg_quality)
+                        msg = T[COMPRESSED_TYPE](header=header, format=fmt, data=data)
+                    else:
+                        data, step = buffer_from_grey(img, encoding, row_padding)
+                        msg = T[IMAGE_TYPE](header=header, height=img.shape[0],
+                                            width=img.shape[1], encoding=encoding,
+                                            is_bigendian=0, step=step, data=data)
                     info = CameraInfo(
                         header=header, height=cam.height, width=cam.width,
                         distortion_model=cam.distortion_model,
@@ -229,7 +271,7 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
                     # camera_info first: a player that waits for the odometry of each pair
                     # after its second image must not hold back the calibration it needs.
                     writer.write(conns[side + 'c'], ns, ts.serialize_cdr(info, INFO_TYPE))
-                    writer.write(conns[side + 'i'], ns, ts.serialize_cdr(msg, IMAGE_TYPE))
+                    writer.write(conns[side + 'i'], ns, ts.serialize_cdr(msg, image_type))
                 if pose_iter is not None:
                     try:
                         pose = np.asarray(next(pose_iter), np.float64)
@@ -240,7 +282,8 @@ def write_stereo_bag(path: str | Path, frames: Iterable[StereoFrame],
                     writer.write(conns['gt'], ns, ts.serialize_cdr(odom, ODOM_TYPE))
     except WriterError as exc:
         raise DatasetError(f'cannot write bag {str(path)!r}: {exc}') from None
-    logger.info('wrote %d stereo pairs to %s (%s, %s)', count, path, storage, encoding)
+    logger.info('wrote %d stereo pairs to %s (%s, %s %s)', count, path, storage,
+                topics.transport, encoding)
     return count
 
 
@@ -306,13 +349,14 @@ class RosbagSequence:
         left: list[int] = []
         right: list[int] = []
         odom: dict[int, np.ndarray] = {}
-        tp = self.topics
         with self._open() as reader:
             conns = self._connections(reader)
+            tp = self.topics  # the transport may have changed to the one the bag holds
+            left_topic, right_topic = tp.images
             for conn, _, raw in reader.messages(connections=[c for c in conns.values() if c]):
-                if conn.topic == tp.left_image:
+                if conn.topic == left_topic:
                     left.append(_header_stamp_ns(raw))
-                elif conn.topic == tp.right_image:
+                elif conn.topic == right_topic:
                     right.append(_header_stamp_ns(raw))
                 elif conn.topic in (tp.left_info, tp.right_info):
                     side = 'left' if conn.topic == tp.left_info else 'right'
@@ -356,19 +400,24 @@ class RosbagSequence:
             reader.close()
 
     def _connections(self, reader: Reader) -> dict[str, Any]:
-        tp = self.topics
         by_topic = {c.topic: c for c in reader.connections}
-        wanted = {tp.left_image: IMAGE_TYPE, tp.right_image: IMAGE_TYPE,
+        found = {c.topic: c.msgtype for c in reader.connections}
+        tp = self.topics
+        if tp.transport == 'raw' and not set(tp.images) & set(found) and \
+                all(found.get(t) == COMPRESSED_TYPE for t in tp.compressed().images):
+            logger.info('%s: no raw images on %s; reading the compressed ones on %s',
+                        self.path, list(tp.images), list(tp.compressed().images))
+            self.topics = tp = tp.compressed()
+        wanted = {tp.images[0]: tp.image_type, tp.images[1]: tp.image_type,
                   tp.left_info: INFO_TYPE, tp.right_info: INFO_TYPE}
         missing = [t for t in wanted if t not in by_topic]
-        found = {c.topic: c.msgtype for c in reader.connections}
         if missing:
             raise DatasetError(f'bag {str(self.path)!r} lacks topic(s) {missing}; it has '
                                f'{found}')
         wrong = {t: found[t] for t, msgtype in wanted.items() if found[t] != msgtype}
         if wrong:
             raise DatasetError(f'bag {str(self.path)!r}: unexpected message types {wrong} '
-                               f'(need {IMAGE_TYPE} and {INFO_TYPE})')
+                               f'(need {tp.image_type} and {INFO_TYPE})')
         conns = {t: by_topic[t] for t in wanted}
         odom = by_topic.get(tp.odometry)
         if odom is not None and odom.msgtype == ODOM_TYPE:
@@ -434,13 +483,13 @@ class RosbagSequence:
         complete: set[int] = set()
         nxt = 0  # index into self._pairs of the next pair to yield
         with self._open() as reader:
-            images = (tp.left_image, tp.right_image)
+            images = tp.images
             conns = [c for c in reader.connections if c.topic in images]
             for conn, _, raw in reader.messages(connections=conns):
                 ns = _header_stamp_ns(raw)
                 if ns not in wanted:
                     continue
-                side, other = ('l', 'r') if conn.topic == tp.left_image else ('r', 'l')
+                side, other = ('l', 'r') if conn.topic == images[0] else ('r', 'l')
                 pending[side][ns] = raw
                 if ns in pending[other]:
                     complete.add(ns)
@@ -448,13 +497,15 @@ class RosbagSequence:
                     ns = int(self._pairs[nxt])
                     complete.discard(ns)
                     nxt += 1
-                    left = self._decode(pending['l'].pop(ns), tp.left_image)
-                    right = self._decode(pending['r'].pop(ns), tp.right_image)
+                    left = self._decode(pending['l'].pop(ns), images[0])
+                    right = self._decode(pending['r'].pop(ns), images[1])
                     yield StereoFrame(left, right, ns / 1e9, self._calibration_at(ns))
 
     def _decode(self, raw: bytes, topic: str) -> np.ndarray:
-        msg = self._ts.deserialize_cdr(raw, IMAGE_TYPE)
+        msg = self._ts.deserialize_cdr(raw, self.topics.image_type)
         try:
+            if self.topics.transport == 'compressed':
+                return grey_from_compressed(msg.format, msg.data)
             return grey_from_buffer(msg.encoding, msg.width, msg.height, msg.step, msg.data,
                                     bool(msg.is_bigendian))
         except ImageError as exc:

@@ -3,17 +3,22 @@ The ROS 2 node: stereo images in, REP-105 odometry out.
 
 Interface (names relative to the node's namespace, all remappable):
 
-* Subscribes ``left/image_rect``, ``right/image_rect`` (sensor_msgs/Image) and
-  ``left/camera_info``, ``right/camera_info`` (sensor_msgs/CameraInfo); sensor-data QoS by
-  default, reliable with ``ros.qos: reliable``. Images are paired by stamp (``ros.sync``:
-  exact, or approximate within ``ros.sync_slop_s``); the latest camera_info of each side is
-  used. ``~/set_pose`` (geometry_msgs/PoseWithCovarianceStamped): pose of the base frame in the
-  odom frame (header.frame_id empty or the odom frame) to continue from.
+* Subscribes ``left/image_rect``, ``right/image_rect`` (sensor_msgs/Image; with
+  ``ros.image_transport: compressed`` sensor_msgs/CompressedImage on ``<topic>/compressed``)
+  and ``left/camera_info``, ``right/camera_info`` (sensor_msgs/CameraInfo). ``ros.qos: auto``
+  (default) subscribes to the images reliably when every publisher offers reliable, best
+  effort otherwise, and re-checks every second as publishers come and go; ``sensor_data`` and
+  ``reliable`` fix it. Images are paired by stamp (``ros.sync``: exact, or approximate within
+  ``ros.sync_slop_s``); the latest camera_info of each side is used. ``~/set_pose``
+  (geometry_msgs/PoseWithCovarianceStamped): pose of the base frame in the odom frame
+  (header.frame_id empty or the odom frame) to continue from.
 * Publishes ``odom`` (nav_msgs/Odometry, odom frame -> base frame, stamped with the left image
   stamp, twist in the base frame), ``path`` (nav_msgs/Path, at most ``ros.path_max_length``
   poses, sent only while subscribed), ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, 1 Hz
-  wall time), ``~/debug_image`` (bgr8, drawn only while subscribed) and, when tf2_ros (or
-  tf2_msgs) is importable and ``ros.publish_tf`` is true, the odom -> base transform on /tf.
+  wall time), ``~/debug_image`` (bgr8, drawn only while subscribed) and, when
+  ``ros.publish_tf`` is true, the odom -> base transform on /tf (tf2_msgs/TFMessage, as
+  tf2_ros's broadcaster sends it). The camera's mounting (base <- camera optical frame) is
+  looked up once in /tf_static and /tf (``tf_tree.py``), else taken from the parameters.
 * Services: ``~/reset`` (std_srvs/Trigger) restarts the odometry at the identity.
 * Parameters: every field of ``Config`` as ``section.name`` (read-only unless marked dynamic),
   initial values from the parameter overrides (``--params-file``) else the defaults.
@@ -37,6 +42,7 @@ import array
 import collections
 import dataclasses
 import logging
+import pathlib
 import re
 import sys
 import threading
@@ -52,34 +58,29 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
                                 SetParametersResult)
 import rclpy
 from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_srvs.srv import Trigger
+import yaml
 
 from . import conversions as conv
+from . import dds
 from .sync import StereoPair, StereoSynchronizer
+from .tf_tree import TransformListener
 from ..config import Config, from_flat
+from ..datasets.compressed import grey_from_compressed
 from ..errors import CalibrationError, ConfigError, ImageError
 from ..pipeline import RESTART_JUMP_S, StereoOdometry
 from ..records import OdometryResult, StereoFrame, TrackingStatus
 
-try:  # optional: not part of the PyPI wheels used in CI
-    import tf2_ros
-except ImportError:  # pragma: no cover - depends on the install
-    tf2_ros = None
-try:
+try:  # a ROS install has it; a pip install gets it from scripts/build_tf2_msgs.sh
     from tf2_msgs.msg import TFMessage
 except ImportError:  # pragma: no cover - depends on the install
     TFMessage = None
-try:
-    import message_filters
-except ImportError:  # pragma: no cover - depends on the install
-    message_filters = None
 
 #: Queue length of the stereo synchroniser per side (messages).
 SYNC_QUEUE_SIZE = 10
@@ -95,6 +96,10 @@ PAIR_GAP_HINT_MS = 5.0
 PAIR_GAP_WINDOW = 30
 #: Seconds (wall) without a pair after which the diagnostics report stale input.
 STALE_INPUT_S = 3.0
+#: Seconds (wall) between two looks at the image publishers' QoS (``ros.qos: auto``).
+QOS_CHECK_PERIOD_S = 1.0
+#: Seconds (wall) over which images arriving without their partner are counted.
+PARTNER_WINDOW_S = 10.0
 #: Seconds between repetitions of a throttled log line (per problem, not per call site).
 LOG_THROTTLE_S = 5.0
 #: Share of the pixels at the darkest or the brightest grey level above which an image is
@@ -141,6 +146,12 @@ def parameter_descriptor(name: str, field: dataclasses.Field) -> ParameterDescri
     elif isinstance(default, list):
         desc.dynamic_typing = True
     return desc
+
+
+def _reason(exc: ParameterException) -> str:
+    """Return the useful part of an rclpy parameter exception, on one line."""
+    text = ' '.join(str(exc).split())
+    return text.replace('Invalid parameter value ', '').replace('Trying to set parameter ', '')
 
 
 def _plain(value: Any) -> Any:
@@ -220,10 +231,16 @@ class StereoVONode(Node):
         self._waiting_for = ''
         self._last_result: OdometryResult | None = None
         self._last_latency_ms = float('nan')
+        self._decode_ms = float('nan')
         self._warned: set[str] = set()
-
-        qos = qos_profile_sensor_data if cfg.qos == 'sensor_data' else \
-            QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        self._partner_events: collections.deque = collections.deque()  # (wall, side, n)
+        self._image_subs: list = []
+        self._image_reliability: ReliabilityPolicy | None = None
+        self._image_type = CompressedImage if cfg.image_transport == 'compressed' else Image
+        self._image_topics = tuple(
+            self.resolve_topic_name(f'{side}/image_rect') +
+            ('/compressed' if cfg.image_transport == 'compressed' else '')
+            for side in ('left', 'right'))
 
         self._odom_pub = self.create_publisher(Odometry, 'odom', 10)
         self._path_pub = self.create_publisher(Path, 'path', 1)
@@ -232,28 +249,21 @@ class StereoVONode(Node):
             if cfg.publish_debug_image else None
         self._setup_tf()
 
+        # camera_info: small messages; best effort matches every publisher (reliable only
+        # when asked for).
+        info_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE) \
+            if cfg.qos == 'reliable' else qos_profile_sensor_data
         self.create_subscription(CameraInfo, 'left/camera_info',
-                                 lambda m: self._on_info('left', m), qos)
+                                 lambda m: self._on_info('left', m), info_qos)
         self.create_subscription(CameraInfo, 'right/camera_info',
-                                 lambda m: self._on_info('right', m), qos)
-        self._sync: StereoSynchronizer | None = None
-        if message_filters is not None:  # pragma: no cover - not installed in CI
-            subs = [message_filters.Subscriber(self, Image, topic, qos_profile=qos)
-                    for topic in ('left/image_rect', 'right/image_rect')]
-            if cfg.sync == 'exact':
-                self._mf_sync = message_filters.TimeSynchronizer(subs, SYNC_QUEUE_SIZE)
-            else:
-                self._mf_sync = message_filters.ApproximateTimeSynchronizer(
-                    subs, SYNC_QUEUE_SIZE, cfg.sync_slop_s)
-            self._mf_sync.registerCallback(self._on_synced_messages)
-        else:
-            self._sync = StereoSynchronizer(cfg.sync, cfg.sync_slop_s, SYNC_QUEUE_SIZE,
-                                            restart_jump_s=RESTART_JUMP_S)
-            self._sync_lock = threading.Lock()
-            self.create_subscription(Image, 'left/image_rect',
-                                     lambda m: self._on_image('left', m), qos)
-            self.create_subscription(Image, 'right/image_rect',
-                                     lambda m: self._on_image('right', m), qos)
+                                 lambda m: self._on_info('right', m), info_qos)
+        # Pairing: the pure-Python synchroniser (message_filters' policies, tested here).
+        self._sync = StereoSynchronizer(cfg.sync, cfg.sync_slop_s, SYNC_QUEUE_SIZE,
+                                        restart_jump_s=RESTART_JUMP_S)
+        self._sync_lock = threading.Lock()
+        self._subscribe_images(self._wanted_reliability())
+        self.create_timer(QOS_CHECK_PERIOD_S, self._check_publishers,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_subscription(PoseWithCovarianceStamped, '~/set_pose', self._on_set_pose, 10)
@@ -265,21 +275,87 @@ class StereoVONode(Node):
         logging.getLogger('stereo_vo_ros').addHandler(self._log_bridge)
         self._worker.start()
         self.get_logger().info(
-            f'stereo VO ready: {self.resolve_topic_name("left/image_rect")} + '
-            f'{self.resolve_topic_name("right/image_rect")} ({cfg.sync} sync, {cfg.qos} QoS, '
+            f'stereo VO ready: {self._image_topics[0]} + {self._image_topics[1]} '
+            f'({cfg.image_transport}, {cfg.sync} sync, {cfg.qos} QoS, '
             f'{self._config.pipeline.input_kind} input, filter {self._config.filter.type}) -> '
             f'{self.resolve_topic_name("odom")}')
+
+    # -- image subscriptions and their QoS ---------------------------------------------
+    def _publisher_reliabilities(self) -> list[ReliabilityPolicy]:
+        """Reliability offered by every publisher of the two image topics (graph query)."""
+        return [info.qos_profile.reliability for topic in self._image_topics
+                for info in self.get_publishers_info_by_topic(topic)]
+
+    def _wanted_reliability(self) -> ReliabilityPolicy:
+        """
+        Reliability the image subscriptions should have now.
+
+        ``auto``: reliable when there are publishers and every one offers reliable (a reliable
+        reader gets a resend where a best-effort one loses an image), best effort otherwise
+        (a reliable reader receives nothing from a best-effort writer).
+        """
+        qos = self._config.ros.qos
+        if qos == 'reliable':
+            return ReliabilityPolicy.RELIABLE
+        if qos == 'sensor_data':
+            return ReliabilityPolicy.BEST_EFFORT
+        offered = self._publisher_reliabilities()
+        if offered and all(r == ReliabilityPolicy.RELIABLE for r in offered):
+            return ReliabilityPolicy.RELIABLE
+        return ReliabilityPolicy.BEST_EFFORT
+
+    def _subscribe_images(self, reliability: ReliabilityPolicy) -> None:
+        """(Re)create the two image subscriptions with the given reliability."""
+        for sub in self._image_subs:
+            self.destroy_subscription(sub)
+        qos = QoSProfile(depth=qos_profile_sensor_data.depth, reliability=reliability)
+        self._image_subs = [
+            self.create_subscription(self._image_type, topic,
+                                     lambda m, side=side: self._on_image(side, m), qos)
+            for side, topic in zip(('left', 'right'), self._image_topics)]
+        self._image_reliability = reliability
+
+    @property
+    def image_reliability(self) -> str:
+        """Reliability of the image subscriptions in force: ``reliable`` or ``best_effort``."""
+        return 'reliable' if self._image_reliability == ReliabilityPolicy.RELIABLE else \
+            'best_effort'
+
+    def _check_publishers(self) -> None:
+        """Timer: follow the publishers' QoS (auto); warn when a fixed QoS cannot match."""
+        cfg = self._config.ros
+        wanted = self._wanted_reliability()
+        if wanted != self._image_reliability:
+            self._subscribe_images(wanted)
+            self.get_logger().info(
+                f'image subscriptions now {self.image_reliability}: the publishers of '
+                f'{list(self._image_topics)} offer '
+                f'{sorted({str(r.name).lower() for r in self._publisher_reliabilities()})}')
+        if cfg.qos == 'reliable' and ReliabilityPolicy.BEST_EFFORT in \
+                self._publisher_reliabilities():
+            self._warn('ros.qos is reliable but an image publisher offers best effort: '
+                       'nothing is received from it; set ros.qos to auto or sensor_data',
+                       key='qos-incompatible')
 
     # -- parameters --------------------------------------------------------------------
     def _declare_config(self) -> Config:
         """Declare every Config field as a parameter and build the Config from their values."""
         values = {}
+        overrides = getattr(self, '_parameter_overrides', {})  # rclpy keeps them here
+        fields = {name: field for name, _, field in Config().items()}
+        # Check the overrides first, for messages that name the parameter, its range and type.
+        from_flat({n: _plain(p.value) for n, p in overrides.items() if n in fields})
         for name, default, field in Config().items():
             self._fields[name] = field
-            param = self.declare_parameter(name, default, parameter_descriptor(name, field))
+            try:
+                param = self.declare_parameter(name, default, parameter_descriptor(name, field))
+            except ParameterException as exc:  # out of range or of the wrong type
+                given = overrides[name].value if name in overrides else default
+                raise ConfigError(f'parameter {name}: {given!r} rejected ({_reason(exc)}); '
+                                  f'default {default!r}: {field.metadata.get("doc", "")}') \
+                    from None
             values[name] = _plain(param.value)
         sections = {name.partition('.')[0] for name in self._fields}
-        overrides = getattr(self, '_parameter_overrides', {})  # rclpy keeps them here
         unknown = sorted(n for n in overrides if n.partition('.')[0] in sections and
                          n not in self._fields)
         if unknown:
@@ -323,39 +399,34 @@ class StereoVONode(Node):
             self.get_logger().warning(text)
 
     def _setup_tf(self) -> None:
+        """Create the /tf publisher (tf2_ros's broadcaster sends the same) and TF listener."""
         cfg = self._config.ros
-        self._tf_broadcaster = None
         self._tf_pub = None
-        self._tf_buffer = None
-        if tf2_ros is not None:  # pragma: no cover - not installed in CI
-            self._tf_buffer = tf2_ros.Buffer()
-            self._tf_listener = tf2_ros.TransformListener(self._tf_buffer, self)
+        self._tf_listener = TransformListener(self, TFMessage) if TFMessage is not None \
+            else None
         if not cfg.publish_tf:
             return
-        if tf2_ros is not None:  # pragma: no cover
-            self._tf_broadcaster = tf2_ros.TransformBroadcaster(self)
-        elif TFMessage is not None:  # pragma: no cover
+        if TFMessage is not None:
             self._tf_pub = self.create_publisher(TFMessage, '/tf', 100)
-        else:
-            self._warn_once('tf', 'ros.publish_tf is true but neither tf2_ros nor tf2_msgs '
-                            'is importable: the odom -> base transform is NOT broadcast on '
-                            '/tf (the odom topic carries the same pose)')
+        else:  # pragma: no cover - scripts/_venv.sh builds tf2_msgs into the test venv
+            self._warn_once('tf', 'ros.publish_tf is true but tf2_msgs is not importable: the '
+                            'odom -> base transform is NOT broadcast on /tf (the odom topic '
+                            'carries the same pose); source a ROS 2 install or run '
+                            'scripts/build_tf2_msgs.sh for a pip install')
 
     def _base_from_camera(self, camera_frame: str) -> np.ndarray:
         """Pose (4, 4) of the left camera optical frame in the base frame (fixed per run)."""
         if self._T_base_cam is not None:
             return self._T_base_cam
         cfg = self._config.ros
-        reason = 'tf2_ros is not importable'
-        if self._tf_buffer is not None and camera_frame:  # pragma: no cover
+        reason = 'tf2_msgs is not importable (no TF listener)'
+        if self._tf_listener is not None and camera_frame:
             try:
-                tf = self._tf_buffer.lookup_transform(cfg.base_frame, camera_frame,
-                                                      Time())
-                tr, ro = tf.transform.translation, tf.transform.rotation
-                self._T_base_cam = conv.transform_from_pose(tr, ro)
-                self.get_logger().info(f'{cfg.base_frame} <- {camera_frame} from TF')
+                self._T_base_cam = self._tf_listener.tree.lookup(cfg.base_frame, camera_frame)
+                self.get_logger().info(f'{cfg.base_frame} <- {camera_frame} from TF: '
+                                       f'{np.round(self._T_base_cam[:3], 6).tolist()}')
                 return self._T_base_cam
-            except Exception as exc:  # tf2 raises several lookup errors
+            except LookupError as exc:
                 reason = f'TF lookup {cfg.base_frame} <- {camera_frame!r} failed: {exc}'
         elif not camera_frame:
             reason = 'the camera frame is unknown (empty frame_id and ros.camera_frame)'
@@ -387,11 +458,11 @@ class StereoVONode(Node):
         stamp_ns = conv.nanoseconds_from_time(msg.header.stamp)
         with self._sync_lock:
             stats = self._sync.stats
-            before = (stats.restarts, stats.late[side], sum(stats.unmatched.values()))
+            before = (stats.restarts, stats.late[side], dict(stats.unmatched))
             previous = self._sync.newest(side)
             pairs = self._sync.add(side, stamp_ns, msg)
             stats = self._sync.stats
-            after = (stats.restarts, stats.late[side], sum(stats.unmatched.values()))
+            after = (stats.restarts, stats.late[side], dict(stats.unmatched))
             newest = {s: self._sync.newest(s) for s in ('left', 'right')}
         if after[0] > before[0]:
             self._warn(f'{side} image stamp {stamp_ns * 1e-9:.9f} s is '
@@ -401,14 +472,9 @@ class StereoVONode(Node):
         elif after[1] > before[1]:
             self._warn(f'{side} image dropped: stamp {stamp_ns * 1e-9:.9f} s is not after the '
                        'last stereo pair (duplicate or out-of-order stamp)', key='sync-late')
-        if after[2] > before[2]:
-            cfg = self._config.ros
-            rule = 'equal (exact sync)' if cfg.sync == 'exact' else \
-                f'within {cfg.sync_slop_s} s (approximate sync)'
-            stamps = ', '.join(f'{s} {v * 1e-9:.9f} s' for s, v in newest.items()
-                               if v is not None)
-            self._warn(f'{after[2] - before[2]} image(s) dropped without a partner: left and '
-                       f'right stamps are not {rule}; newest {stamps}', key='sync-unmatched')
+        lost = {s: after[2][s] - before[2][s] for s in ('left', 'right')}
+        if any(lost.values()):
+            self._on_unmatched(lost, newest)
         for pair in pairs:
             self._note_arrival_gap(pair)
             self._on_pair(pair)
@@ -428,9 +494,58 @@ class StereoVONode(Node):
                     'FASTRTPS_DEFAULT_PROFILES_FILE=<share>/stereo_vo_ros/config/'
                     'fastdds_large_images.xml (docs/ros_interface.md)')
 
-    def _on_synced_messages(self, left: Image, right: Image) -> None:  # pragma: no cover
-        self._on_pair(StereoPair(conv.nanoseconds_from_time(left.header.stamp),
-                                 conv.nanoseconds_from_time(right.header.stamp), left, right))
+    def partner_loss(self) -> dict[str, Any]:
+        """
+        Images that arrived without their partner over the last ``PARTNER_WINDOW_S`` seconds.
+
+        Returns
+        -------
+        dict
+            ``left``/``right``: images of that side left without a partner (count),
+            ``rate_hz``: such images per second, ``share``: their fraction of the images
+            received (0..1), ``window_s``.
+
+        """
+        now = time.monotonic()
+        while self._partner_events and now - self._partner_events[0][0] > PARTNER_WINDOW_S:
+            self._partner_events.popleft()
+        counts = {'left': 0, 'right': 0}
+        for _, side, n in self._partner_events:
+            counts[side] += n
+        lost = counts['left'] + counts['right']
+        pairs = sum(1 for t in self._arrivals if now - t <= PARTNER_WINDOW_S)
+        received = lost + 2 * pairs
+        return {**counts, 'rate_hz': lost / PARTNER_WINDOW_S,
+                'share': lost / received if received else 0.0, 'window_s': PARTNER_WINDOW_S}
+
+    def _on_unmatched(self, lost: dict[str, int], newest: dict[str, int | None]) -> None:
+        """Images dropped without a partner: say what is lost, why, and the fixes (throttled)."""
+        now = time.monotonic()
+        for side, n in lost.items():
+            if n:
+                self._partner_events.append((now, side, n))
+        loss = self.partner_loss()
+        cfg = self._config.ros
+        stamps = [v for v in newest.values() if v is not None]
+        spread = (max(stamps) - min(stamps)) * 1e-9 if len(stamps) == 2 else 0.0
+        rule = 'equal (exact sync)' if cfg.sync == 'exact' else \
+            f'within {cfg.sync_slop_s} s (approximate sync)'
+        what = (f'{loss["left"]} left and {loss["right"]} right images of the last '
+                f'{loss["window_s"]:.0f} s arrived without their partner '
+                f'({loss["share"]:.0%} of the images, {loss["rate_hz"]:.1f} per second)')
+        if loss['left'] and loss['right'] and spread > cfg.sync_slop_s:
+            why = (f'the left and right stamps are not {rule} (newest differ by '
+                   f"{spread:.6f} s): check the cameras' stamps or ros.sync_slop_s")
+        else:
+            missing = 'left' if loss['right'] >= loss['left'] else 'right'
+            why = (f'{missing} images are lost in transport. The image subscriptions are '
+                   f'{self.image_reliability} (ros.qos: {cfg.qos}). Fixes: with a reliable '
+                   'image publisher, ros.qos auto or reliable (a resend instead of a loss); '
+                   'with Fast DDS, start the publishing process with '
+                   f'FASTRTPS_DEFAULT_PROFILES_FILE={dds.config_path(dds.PUBLISHER_PROFILE)} '
+                   '(its 512 kB shared-memory segment does not hold two large images), or '
+                   f'start this node with {dds.config_path(dds.NODE_PROFILE)}')
+        self._warn(f'{what}: {why}', key='sync-unmatched')
 
     def _on_pair(self, pair: StereoPair) -> None:
         now = time.monotonic()
@@ -518,12 +633,15 @@ class StereoVONode(Node):
         return (f'{self._calib.size[0]}x{self._calib.size[1]} px, fx '
                 f'{self._calib.K_left[0, 0]:.6g} px, baseline {self._calib.baseline_m:.6g} m')
 
-    def _grey(self, side: str, msg: Image) -> np.ndarray:
+    def _grey(self, side: str, msg: Image | CompressedImage) -> np.ndarray:
         """Convert one image, naming the side and topic in the error; warn if badly exposed."""
         try:
-            grey = conv.grey_from_image(msg)
+            if isinstance(msg, CompressedImage):
+                grey = grey_from_compressed(msg.format, msg.data)
+            else:
+                grey = conv.grey_from_image(msg)
         except ImageError as exc:
-            topic = self.resolve_topic_name(f'{side}/image_rect')
+            topic = self._image_topics[0 if side == 'left' else 1]
             raise ImageError(f'{side} image ({topic}): {exc}') from None
         top = np.iinfo(grey.dtype).max
         for value, what in ((top, f'over-exposed: {{:.0%}} of the pixels saturated at {top}'),
@@ -582,8 +700,10 @@ class StereoVONode(Node):
                 calib = self._calibration(left_info, right_info)
             except CalibrationError as exc:
                 raise CalibrationError(f'invalid camera_info: {exc}') from None
+            t0 = time.perf_counter()
             frame = StereoFrame(self._grey('left', pair.left), self._grey('right', pair.right),
                                 pair.stamp_ns * 1e-9, calib)
+            self._decode_ms = (time.perf_counter() - t0) * 1e3
             with self._pipeline_lock:
                 restart = self._last_stamp_ns is not None and \
                     pair.stamp_ns < self._last_stamp_ns - int(RESTART_JUMP_S * 1e9)
@@ -600,10 +720,10 @@ class StereoVONode(Node):
             self._counts['ignored'] += 1
             self._warn(f'frame ignored: {result.message}')
             return
-        self._publish(pair, result)
+        self._publish(pair, result, frame.left)
         self._last_latency_ms = (time.perf_counter() - t_arrival) * 1e3
 
-    def _publish(self, pair: StereoPair, result: OdometryResult) -> None:
+    def _publish(self, pair: StereoPair, result: OdometryResult, left: np.ndarray) -> None:
         cfg = self._config.ros
         camera_frame = cfg.camera_frame or pair.left.header.frame_id
         odom = conv.base_odometry_from_result(result, self._base_from_camera(camera_frame))
@@ -629,19 +749,15 @@ class StereoVONode(Node):
             path.header.frame_id = cfg.odom_frame
             path.poses = list(self._path)
             self._path_pub.publish(path)
-        if self._tf_broadcaster is not None or self._tf_pub is not None:  # pragma: no cover
+        if self._tf_pub is not None:
             if cfg.invert_tf:
                 tf = conv.transform_msg(np.linalg.inv(odom.T_odom_base), stamp, cfg.base_frame,
                                         cfg.odom_frame)
             else:
                 tf = conv.transform_msg(odom.T_odom_base, stamp, cfg.odom_frame, cfg.base_frame)
-            if self._tf_broadcaster is not None:
-                self._tf_broadcaster.sendTransform(tf)
-            else:
-                self._tf_pub.publish(TFMessage(transforms=[tf]))
+            self._tf_pub.publish(TFMessage(transforms=[tf]))
         if self._debug_pub is not None and self._debug_pub.get_subscription_count() > 0:
-            img = conv.debug_image(conv.grey_from_image(pair.left), result.features,
-                                   result.inliers)
+            img = conv.debug_image(left, result.features, result.inliers)
             self._debug_pub.publish(conv.image_from_numpy(img, 'bgr8', stamp, camera_frame))
 
     # -- services ----------------------------------------------------------------------
@@ -652,9 +768,8 @@ class StereoVONode(Node):
             self._path.clear()
             self._last_stamp_ns = None
             if drop_pending:  # also forget the images not yet paired or processed
-                if self._sync is not None:
-                    with self._sync_lock:
-                        self._sync.reset()
+                with self._sync_lock:
+                    self._sync.reset()
                 with self._slot_lock:
                     self._slot = None
         self._counts['resets'] += 1
@@ -729,7 +844,8 @@ class StereoVONode(Node):
         rate = 0.0
         if len(self._arrivals) >= 2 and self._arrivals[-1] > self._arrivals[0]:
             rate = (len(self._arrivals) - 1) / (self._arrivals[-1] - self._arrivals[0])
-        sync_stats = self._sync.stats if self._sync is not None else None
+        sync_stats = self._sync.stats
+        loss = self.partner_loss()
         values = {
             'tracking_state': res.status.value if res is not None else 'none',
             'features': res.n_tracked if res is not None else 0,
@@ -743,10 +859,16 @@ class StereoVONode(Node):
             'input_rate_hz': rate,
             'pair_arrival_gap_ms': float(np.mean(self._pair_gaps_ms)) if self._pair_gaps_ms
             else float('nan'),
+            'image_transport': self._config.ros.image_transport,
+            'image_decode_ms': self._decode_ms,
+            'input_qos': f'{self.image_reliability} (ros.qos {self._config.ros.qos})',
+            'images_without_partner_left': loss['left'],
+            'images_without_partner_right': loss['right'],
+            'images_without_partner_pct': 100.0 * loss['share'],
             'pairs_received': self._counts['pairs'],
             'pairs_processed': self._counts['processed'],
             'dropped_pairs': self._counts['dropped'],
-            'unsynchronized_inputs': sync_stats.unsynchronized if sync_stats else 'n/a',
+            'unsynchronized_inputs': sync_stats.unsynchronized,
             'pairs_without_camera_info': self._counts['without_camera_info'],
             'frames_ignored': self._counts['ignored'],
             'non_finite_skipped': self._counts['non_finite'],
@@ -754,6 +876,7 @@ class StereoVONode(Node):
             'resets': self._counts['resets'],
             'calibration': self._calib_summary(),
             'calibration_changes': max(self._counts['calibrations'] - 1, 0),
+            'tf_broadcast': self._tf_pub is not None,
             'path_length': len(self._path),
             'warnings': self._counts['warnings'],
             'last_warning': self._last_warning,
@@ -771,29 +894,82 @@ class StereoVONode(Node):
         self._diag_pub.publish(msg)
 
 
+def _one_line(exc: BaseException) -> str:
+    """Return an exception as one line: rcl's multi-line errors folded, its trace dropped."""
+    text = str(exc).split(', at ')[0]  # rcl appends ", at <file>:<line>"
+    return ' '.join(text.split())
+
+
+def _check_params_files(argv: list[str]) -> None:
+    """
+    Read every ``--params-file`` of the command line before rcl does, for a one-line error.
+
+    Only readability and YAML syntax are checked here: the file may hold other nodes'
+    parameters too; the node checks its own values once rclpy has parsed them.
+
+    Raises
+    ------
+    ConfigError
+        A params file is missing, unreadable or not YAML.
+
+    """
+    for flag, path in zip(argv, argv[1:]):
+        if flag != '--params-file':
+            continue
+        try:
+            yaml.safe_load(pathlib.Path(path).read_text())
+        except OSError as exc:
+            raise ConfigError(f'cannot read the params file {path!r}: {exc.strerror}') \
+                from None
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, 'problem_mark', None)
+            where = f' (line {mark.line + 1}, column {mark.column + 1})' if mark else ''
+            problem = getattr(exc, 'problem', None) or ' '.join(str(exc).split())
+            raise ConfigError(f'the params file {path!r} is not valid YAML: {problem}{where}') \
+                from None
+
+
 def main(args: list[str] | None = None) -> int:
     """
     Run the node (``ros2 run stereo_vo_ros stereo_vo_node``) until shut down.
 
+    Before ROS starts, the process chooses its Fast DDS profile (``dds.apply_node_profile``).
+    A start-up mistake (a missing or unparsable params file, a parameter out of range or of
+    the wrong type) is one line on stderr and exit code 2, never a traceback.
+
     Returns
     -------
     int
-        0 on a normal shutdown, 1 if the configuration is invalid.
+        0 on a normal shutdown, 2 if the node cannot start.
 
     """
-    rclpy.init(args=args)
+    profile_note = dds.apply_node_profile()
+    try:
+        _check_params_files(sys.argv if args is None else args)
+    except ConfigError as exc:
+        print(f'stereo_vo_node: {exc}', file=sys.stderr)
+        return 2
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # rclpy raises RCLError for bad --ros-args and params files
+        print(f'stereo_vo_node: cannot start ROS: {_one_line(exc)}', file=sys.stderr)
+        return 2
     node = None
     code = 0
     try:
         node = StereoVONode()
+        node.get_logger().info(profile_note)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ConfigError as exc:
-        get_logger('stereo_vo').fatal(f'invalid configuration: {exc}')
-        code = 1
+        print(f'stereo_vo_node: invalid configuration: {exc}', file=sys.stderr)
+        code = 2
+    except (NameValidationException, ParameterException) as exc:  # e.g. a bad remapping
+        print(f'stereo_vo_node: cannot start: {_one_line(exc)}', file=sys.stderr)
+        code = 2
     finally:
         if node is not None:
             node.destroy_node()

@@ -12,7 +12,8 @@ Used by the node tests, the latency benchmark and ``stereo_vo demo``; it owns no
 executor: publishing needs no spinning, so ``play`` simply blocks the calling thread.
 
 ``StereoPairPublisher`` publishes in-memory stereo pairs (camera_info first, then the images) on
-the node's input topics; the node benchmarks feed it.
+the node's input topics, raw or compressed, reliable or best effort; the node benchmarks and
+the transport tests feed it.
 """
 
 from __future__ import annotations
@@ -29,15 +30,16 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from .conversions import camera_info_from_matrices, image_from_numpy, time_from_nanoseconds
+from ..datasets.compressed import compress_grey
 from ..errors import DatasetError
 
 
 class StereoPairPublisher:
     """
-    Publish stereo pairs on the node's input topics (relative names, reliable QoS).
+    Publish stereo pairs on the node's input topics (relative names).
 
     Parameters
     ----------
@@ -49,6 +51,12 @@ class StereoPairPublisher:
         (width, height) of the images.
     depth : int
         History depth of the publishers.
+    reliable : bool
+        Reliable publishers (the ROS default, as most camera drivers), else best effort.
+    compressed : bool
+        Publish sensor_msgs/CompressedImage (jpeg) on ``<image topic>/compressed`` instead.
+    jpeg_quality : int
+        JPEG quality of compressed images.
 
     """
 
@@ -56,10 +64,16 @@ class StereoPairPublisher:
     IMAGE_TOPICS = ('left/image_rect', 'right/image_rect')
 
     def __init__(self, node: Node, P0: Any, P1: Any, size: tuple[int, int],
-                 depth: int = 5) -> None:
-        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+                 depth: int = 5, reliable: bool = True, compressed: bool = False,
+                 jpeg_quality: int = 90) -> None:
+        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE if reliable
+                         else ReliabilityPolicy.BEST_EFFORT)
+        self._compressed = compressed
+        self._quality = jpeg_quality
         self._infos = [node.create_publisher(CameraInfo, t, qos) for t in self.INFO_TOPICS]
-        self._images = [node.create_publisher(Image, t, qos) for t in self.IMAGE_TOPICS]
+        self._images = [
+            node.create_publisher(CompressedImage, t + '/compressed', qos) if compressed
+            else node.create_publisher(Image, t, qos) for t in self.IMAGE_TOPICS]
         w, h = size
         self._info_msgs = (camera_info_from_matrices(P0, w, h, frame_id='camera_left'),
                            camera_info_from_matrices(P1, w, h, frame_id='camera_right'))
@@ -75,8 +89,12 @@ class StereoPairPublisher:
         Returns the ``time.perf_counter()`` reading taken just before the images go out.
         """
         stamp = time_from_nanoseconds(stamp_ns)
-        images = (image_from_numpy(left, 'mono8', stamp, 'camera_left'),
-                  image_from_numpy(right, 'mono8', stamp, 'camera_right'))
+        if self._compressed:
+            images = tuple(self._compress(img, stamp, frame_id) for img, frame_id in
+                           ((left, 'camera_left'), (right, 'camera_right')))
+        else:
+            images = (image_from_numpy(left, 'mono8', stamp, 'camera_left'),
+                      image_from_numpy(right, 'mono8', stamp, 'camera_right'))
         for pub, info in zip(self._infos, self._info_msgs):
             info.header.stamp = stamp
             pub.publish(info)
@@ -84,6 +102,13 @@ class StereoPairPublisher:
         for pub, image in zip(self._images, images):
             pub.publish(image)
         return t
+
+    def _compress(self, img: Any, stamp: Any, frame_id: str) -> CompressedImage:
+        msg = CompressedImage()
+        msg.header.stamp, msg.header.frame_id = stamp, frame_id
+        fmt, data = compress_grey(img, 'jpeg', self._quality)
+        msg.format, msg.data = fmt, data.tobytes()
+        return msg
 
 
 def message_class(msgtype: str) -> type:
