@@ -101,11 +101,26 @@ def cmd_run(args: argparse.Namespace) -> int:
     LOG.info('%d frames (%d without motion estimate), median %.1f ms/frame -> %s',
              stats['frames'], stats['lost_frames'],
              stats['ms'].get('total', {}).get('median', float('nan')), args.poses)
+    if args.save_calibration:
+        _save_calibration(Path(args.save_calibration), out)
     gt = getattr(seq, 'ground_truth', None)
     if args.gt_out and gt is not None:
         gt = np.asarray(gt)[:len(out.poses)]
         _write_poses(Path(args.gt_out), out.stamps, gt, args.format)
     return 0
+
+
+def _save_calibration(path: Path, out) -> None:
+    """Write the calibration refined by the run's rig estimate (camera_info YAML)."""
+    from .rig_calibration import camera_info_yaml, refined_camera_infos
+    if out.rig is None or out.calibration is None:
+        raise StereoVOError('--save-calibration needs the rig refinement (rig.enabled: true) '
+                            'and at least one frame')
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(camera_info_yaml(*refined_camera_infos(out.calibration, out.rig.theta)))
+    LOG.info('refined calibration (%d pairs; row offset %+.3f px, disparity offset %+.3f px) '
+             '-> %s: load it as raw input (pipeline.input_kind: raw)', out.rig.updates,
+             out.rig.row_offset_px, out.rig.disparity_offset_px, path)
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
@@ -218,6 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument('--left-info-topic')
     sp.add_argument('--right-info-topic')
     sp.add_argument('-q', '--quiet', action='store_true', help='no progress bar')
+    sp.add_argument('--save-calibration', metavar='FILE',
+                    help='write the stereo calibration refined by the run (camera_info YAML, '
+                    'left and right; load it with pipeline.input_kind raw)')
     add_config(sp)
     sp.set_defaults(func=cmd_run)
 

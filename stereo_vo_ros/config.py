@@ -22,6 +22,7 @@ import dataclasses
 from dataclasses import dataclass, field
 import json
 from pathlib import Path
+import textwrap
 from typing import Any, Iterator
 
 import yaml
@@ -44,19 +45,18 @@ TRACKER_VARIANTS = ('baseline', 'dc', 'bc', 'db', 'full')
 
 @dataclass
 class TrackerConfig:
-    """KLT tracking with the checks of the light adaptive feature tracking paper (paper 2)."""
+    """KLT tracking with the checks of the light and adaptive feature tracking (Huang et al.)."""
 
-    max_features: int = _f(200, 'Maximum number of tracked features (paper 2: 200).', 8, 5000)
+    max_features: int = _f(
+        200, 'Maximum number of tracked features (Huang et al. use 200).', 8, 5000)
     min_distance_px: float = _f(
         15.0, 'Minimum distance between detected corners (pixels).', 1.0, 200.0)
     quality_level: float = _f(
         0.01, 'Shi-Tomasi quality level relative to the best corner.', 1e-4, 1.0)
     block_size: int = _f(7, 'Shi-Tomasi block size (pixels).', 3, 31)
     win_size_px: int = _f(
-        13, 'KLT window side (pixels, odd). 13 rather than the usual 21: on a fast road the '
-        'window deforms within a frame and a smaller one follows it better (rendered highway '
-        'without vehicles, seed 4: 2.75 % t_rel at 21, 1.15 % at 15; 8 highway seeds with '
-        'vehicles: mean 1.03 % at 15, 0.88 % at 13, 0.89 % at 11).', 5, 61)
+        13, 'KLT window side (pixels, odd). Smaller than the usual 21: where the view deforms '
+        'fast (the near road at speed) a small window follows it better.', 5, 61)
     pyramid_levels: int = _f(
         3, 'KLT pyramid levels above the base image when no prediction is available.', 0, 8)
     predicted_pyramid_levels: int = _f(
@@ -66,19 +66,15 @@ class TrackerConfig:
     max_iterations: int = _f(30, 'KLT iterations per pyramid level.', 1, 200)
     min_eigen_ratio: float = _f(
         0.03, 'Aperture check: drop a feature (at detection and before every temporal pass) '
-        'whose KLT window has a gradient matrix with smaller/larger eigenvalue below this; on '
-        'straight edges (the horizon, lane lines) KLT leaves the displacement along the edge at '
-        'the initial flow, so a wrong motion prior confirms itself. 0.03 drops only near-perfect '
-        'edges; 0.1 (the SIFT edge test) also drops useful features on the urban renders. 0 '
-        'disables.', 0.0, 1.0, dynamic=True)
+        "whose KLT window's gradient matrix has a smaller/larger eigenvalue ratio below this: "
+        'along a straight edge (the horizon, a lane line) KLT cannot measure the motion. '
+        '0 disables.', 0.0, 1.0, dynamic=True)
     min_flow_edge_ratio: float = _f(
         0.1, 'Flow-aligned aperture check at detection (not in the paper): a corner whose KLT '
         'window has less gradient energy along the flow predicted by the motion prior than this '
-        'fraction of that across it is not taken (the next corner of its bucket is). Lane lines '
-        'and their dashes point at the focus of expansion, so at speed their features slide '
-        'along themselves, which looks like a slower car. Rendered highway, seeds 0-23 without '
-        '15: mean t_rel 0.55 % without either flow check, 0.41 % with this one, 0.47 % with the '
-        'tracked one, 0.38 % with both. Needs the prior; 0 disables.', 0.0, 10.0, dynamic=True)
+        'fraction of that across it is not taken (the next corner of its bucket is): lane '
+        'lines seen at speed slide along themselves. Needs the prior; 0 disables.',
+        0.0, 10.0, dynamic=True)
     min_flow_edge_ratio_tracked: float = _f(
         0.05, 'The same check before every temporal pass of a tracked feature, along its '
         'predicted flow and over the affine refinement window (affine_win_size_px): a feature '
@@ -94,12 +90,11 @@ class TrackerConfig:
         dynamic=True)
     affine_stereo_win_size_px: int = _f(
         15, 'Window side of the affine refinement of the stereo matches (pixels, odd). Smaller '
-        'than the temporal one: a window that also holds a nearer surface (a barrier, a '
-        "vehicle) takes that surface's disparity (rendered highway, road corners with a tenth "
-        'of the window off the road: +0.22 px at 21, +0.13 px at 15).', 5, 61, dynamic=True)
+        'than the temporal one, so that a nearer surface in the window (a barrier, a vehicle) '
+        'biases the disparity less.', 5, 61, dynamic=True)
     affine_step_px: int = _f(
         2, 'The affine refinement uses every n-th pixel of its window in both directions (1: '
-        'all; 2 halves its cost with the same accuracy within the spread between scenes).',
+        'all; 2 halves its cost).',
         1, 10, dynamic=True)
     affine_iterations: int = _f(
         3, 'Gauss-Newton steps of the affine refinement.', 1, 50, dynamic=True)
@@ -108,9 +103,9 @@ class TrackerConfig:
         'dc (+disparity constraint), bc (+bi-circular check), db (dc+bc, fixed threshold), '
         'full (dc+bc with adaptive threshold).', choices=TRACKER_VARIANTS)
     bicircular_mode: str = _f(
-        'closure', 'Reading of eq. 7: closure compares right(t2)->right(t1) with the stored '
-        'right(t1) point (default: one KLT pass, finds 3-4x more outliers at equal precision on '
-        'the KITTI clips); roundtrip tracks right(t2)->right(t1)->right(t2).',
+        'closure', 'Reading of eq. 7 of Huang et al.: closure compares right(t2)->right(t1) '
+        'with the stored right(t1) point (one KLT pass); roundtrip tracks '
+        'right(t2)->right(t1)->right(t2) (two).',
         choices=('roundtrip', 'closure'))
     fb_threshold_px: float = _f(
         0.5, 'Forward-backward check threshold delta1 (pixels).', 0.01, 50.0, dynamic=True)
@@ -136,7 +131,7 @@ class TrackerConfig:
 
 @dataclass
 class BucketingConfig:
-    """Bucketing (paper 1, section III-C): region of interest and a grid of buckets."""
+    """Bucketing (Kitt et al., section III-C): region of interest and a grid of buckets."""
 
     enabled: bool = _f(True, 'Select features with the bucketing grid.', dynamic=True)
     roi_margin_px: int = _f(
@@ -148,7 +143,7 @@ class BucketingConfig:
 
 @dataclass
 class FilterConfig:
-    """Kalman filter on the egomotion state (V_X, V_Y, V_Z, w_X, w_Y, w_Z) (paper 1, III-E)."""
+    """Kalman filter on the egomotion state (V_X, V_Y, V_Z, w_X, w_Y, w_Z) (Kitt et al., III-E)."""
 
     type: str = _f('ispkf', 'Filter: ispkf, iekf, ukf or ekf.',  # noqa: A003
                    choices=('ispkf', 'iekf', 'ukf', 'ekf'))
@@ -163,11 +158,9 @@ class FilterConfig:
         'the transfer assumes it, and a vertical stereo offset otherwise biases the rotation.')
     robust_loss: str = _f(
         'cauchy', 'Loss of the final update on the RANSAC inliers (on all correspondences '
-        'with RANSAC off; not in paper 1): cauchy reweights each by 1 / (1 + (e / c)^2), e its '
-        'reprojection error (pixels) under the latest estimate, and updates again from the '
-        'prior; none is the plain Gaussian update of the paper. The inliers that tracked badly '
-        'are few but not symmetric (on a fast road they land short along the flow) and pull '
-        'the speed low.',
+        'with RANSAC off; not in Kitt et al.): cauchy reweights each by 1 / (1 + (e / c)^2), e '
+        'its reprojection error (pixels) under the latest estimate, and updates again from the '
+        'prior; none is the plain Gaussian update of the paper.',
         choices=('none', 'cauchy'), dynamic=True)
     robust_scale_sigmas: float = _f(
         1.0, 'Cauchy scale c in residual sigmas (sigma from the median inlier error, as the '
@@ -201,7 +194,7 @@ class FilterConfig:
 
 @dataclass
 class RansacConfig:
-    """RANSAC outlier rejection (paper 1, section III-D, eq. 14)."""
+    """RANSAC outlier rejection (Kitt et al., section III-D, eq. 14)."""
 
     enabled: bool = _f(True, 'Reject outliers with RANSAC before the final update.', dynamic=True)
     probability: float = _f(
@@ -212,10 +205,8 @@ class RansacConfig:
     startup_outlier_ratio: float = _f(
         0.8, 'epsilon of eq. 14 for the first estimate after a reset of the velocity (the '
         'first pair, a loss, a gap; not in the papers): 0.8 asks for 573 samples '
-        '(max_hypotheses caps them) where 0.5 asks for 35. With no motion to start from, a '
-        'vehicle filling a quarter of the view won those 35 on rendered highway seed 15 (the '
-        'camera then kept the speed of the vehicles: t_rel 110 %); with 300 the road wins. Only '
-        'that pair pays for it; a coasting filter still has its prediction to start from.',
+        '(max_hypotheses caps them) where 0.5 asks for 35, so that with no motion to start '
+        'from a vehicle filling part of the view does not win. Only that pair pays for it.',
         0.0, 0.95, dynamic=True)
     inlier_threshold_px: float = _f(
         2.0, 'Inlier if the Euclidean reprojection error in both current images is below this '
@@ -236,7 +227,7 @@ class RansacConfig:
     seed: int = _f(0, 'Seed of the random sampler (deterministic runs).', 0, 2**31 - 1)
     ground_weight: float = _f(
         4.0, 'Weight of an inlier on the ground plane in the RANSAC inlier count (1: a plain '
-        'count, as in paper 1). The road does not move; a vehicle ahead that keeps the '
+        'count, as in Kitt et al.). The road does not move; a vehicle ahead that keeps the '
         "camera's speed looks static and can otherwise outvote the true motion.", 1.0, 100.0,
         dynamic=True)
     ground_tolerance_m: float = _f(
@@ -282,17 +273,15 @@ class PipelineConfig:
         8.0, 'Track without the motion prior (from the previous positions, with '
         'tracker.pyramid_levels) while the std of the linear velocity exceeds this (m/s): at '
         'the start and after a long loss the prior predicts no motion, and fast features would '
-        'be lost. One coasted frame (std about 6.5 m/s at the defaults) keeps the prior: on '
-        'rendered highway seed 9 a truck filling the view made one pair degenerate, and '
-        'tracking the next without the prior lost the road and locked onto the vehicles '
-        '(t_rel 2.2 %; 0.64 % with the prior).', 0.0, 1000.0, dynamic=True)
+        'be lost. One coasted frame (std about 6.5 m/s at the defaults) keeps the prior.',
+        0.0, 1000.0, dynamic=True)
     road_speed_search: bool = _f(
         True, 'While the velocity is unknown, align the road of the previous and current left '
         'images over forward speeds from -10 m/s to max_speed in 1 m/s steps (ground plane of '
         'the previous features; rectified input) and track with the best speed as the motion '
-        'prior when it is a clear minimum (not in the papers). Without it the near road of a '
-        'fast start is lost while vehicles keeping pace track well, and the first estimate can '
-        'take their motion (rendered highway seed 35: t_rel 67 %).', dynamic=True)
+        'prior when it is a clear minimum (not in the papers): without it the near road of a '
+        'fast start is lost, and vehicles keeping pace can decide the first estimate.',
+        dynamic=True)
 
 
 @dataclass
@@ -303,27 +292,21 @@ class RoadConfig:
         False, 'Align the road pixels of the previous and the current left image over the '
         'motion (plane of the previous pair refined by aligning its left and right images) '
         'and fuse the result with the filter estimate (rectified input; skipped without an '
-        'admissible road plane or when the two disagree beyond gate_chi2). On a fast road '
-        'the few road features track worst of all, while every road pixel carries the '
-        'forward speed: rendered highway, 48 scenes, mean t_rel 0.42 -> 0.26 %; KITTI clips '
-        '0.84 -> 0.77 % and 5.86 -> 4.85 % end drift. Off by default: it costs about 5 ms '
-        'per pair (1241x376), which takes the pipeline over 25 ms per pair on this machine.',
+        'admissible road plane or when the two disagree beyond gate_chi2). Measures the '
+        'forward speed on fast roads, where road features track worst; off by default for '
+        'its cost, about 5-6 ms per 1241x376 pair (docs/tuning.md).',
         dynamic=True)
     motion: str = _f(
         'forward', 'What the road measures. forward: the forward speed (the alignment refines '
         "the forward and vertical translation and the pitch; the rest stays the features'); "
-        'longitudinal: all three of those; full: all six. Refined with the others, the yaw and '
-        'the lateral translation, which the road alone hardly tells apart, drifted on the '
-        "rendered highway and dragged the forward translation along; the road's pitch and "
-        'vertical speed made the rendered city worse (urban seeds 0-5 r_rel 0.08 -> 0.11 '
-        'deg/100 m with longitudinal).', choices=('forward', 'longitudinal', 'full'),
+        'longitudinal: all three of those; full: all six.',
+        choices=('forward', 'longitudinal', 'full'),
         dynamic=True)
     levels: int = _f(
         2, 'Image pyramid levels, coarse to fine (1: the input size only).', 1, 5, dynamic=True)
     first_level: int = _f(
         0, 'Finest pyramid level aligned (0: the input size; 1: half of it, about half the '
-        'time, but the rendered highway, 48 scenes, gave a mean t_rel of 0.35 % against 0.26 % '
-        'at the input size).', 0, 4, dynamic=True)
+        'time and less accurate).', 0, 4, dynamic=True)
     pixel_step: int = _f(
         5, 'Every n-th pixel of the road in both directions is compared (pixels of each '
         'pyramid level).', 1, 64, dynamic=True)
@@ -336,9 +319,7 @@ class RoadConfig:
         35.0, 'Road farther than this is not compared (m).', 1.0, 500.0, dynamic=True)
     max_lateral_m: float = _f(
         6.0, 'Road farther than this to either side of the optical axis is not compared (m): '
-        'parked cars, kerbs and pavements stay out (KITTI clips: end drift 0.91 / 4.64 % '
-        'without the bound, 0.77 / 3.75 % with 6 m).',
-        0.5, 100.0, dynamic=True)
+        'parked cars, kerbs and pavements stay out.', 0.5, 100.0, dynamic=True)
     min_pixels: int = _f(
         1500, 'Fewest road pixels an alignment needs at the input size (a quarter of it at the '
         'next pyramid level, and so on; scaled the same way from first_level).', 10, 10000000,
@@ -371,10 +352,8 @@ class VehicleConfig:
         'forward along the vehicle, which does not slide sideways, so the lateral speed of '
         'the camera follows from its yaw rate (vehicle_motion.py). From a few pixels the '
         'features hardly tell a small yaw from a small lateral motion; this ties the two. '
-        'Rendered highway, 48 scenes, with the road alignment: mean t_rel 0.262 -> 0.208 %, '
-        'r_rel 0.127 -> 0.098 deg/100 m; kitti06 end drift 0.77 -> 0.70 %. Off by default: '
-        'wrong for drones, hand-held and legged platforms, and for a camera that does not '
-        'look along the direction of travel.', dynamic=True)
+        'Off by default: wrong for drones, hand-held and legged platforms, and for a camera '
+        'that does not look along the direction of travel.', dynamic=True)
     lever_arm_m: float = _f(
         0.0, 'How far the left camera sits ahead of the point the vehicle turns about (for a '
         'car, the middle of the rear axle), along the vehicle (m).', -20.0, 20.0, dynamic=True)
@@ -597,8 +576,12 @@ def load(path: str | Path | None = None) -> Config:
     return from_dict(doc)
 
 
+#: Longest comment line of the generated YAML (characters, indentation and ``#`` included).
+YAML_COMMENT_WIDTH = 100
+
+
 def to_yaml(cfg: Config | None = None, node: str = '/**') -> str:
-    """Render a Config as a commented ROS 2 parameter file."""
+    """Render a Config as a commented ROS 2 parameter file (comments wrapped at 100 columns)."""
     cfg = cfg or Config()
     lines = [f'{node}:', '  ros__parameters:']
     for sec in dataclasses.fields(cfg):
@@ -612,7 +595,9 @@ def to_yaml(cfg: Config | None = None, node: str = '/**') -> str:
                 note += f' Range [{meta["lo"]}, {meta["hi"]}].'
             if meta.get('dynamic'):
                 note += ' Settable at run time.'
-            lines.append(f'      # {note}')
+            lines.extend(textwrap.wrap(note, width=YAML_COMMENT_WIDTH,
+                                       initial_indent='      # ', subsequent_indent='      # ',
+                                       break_long_words=False, break_on_hyphens=False))
             dumped = yaml.safe_dump(getattr(section, f.name), default_flow_style=True)
             dumped = dumped.strip().removesuffix('...').strip()
             lines.append(f'      {f.name}: {dumped}')

@@ -12,9 +12,10 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from .camera import StereoCalibration
 from .config import Config
 from .pipeline import StereoOdometry
-from .records import OdometryResult, StereoFrame, TrackingStatus
+from .records import OdometryResult, RigEstimate, StereoFrame, TrackingStatus
 
 
 @dataclass
@@ -30,6 +31,9 @@ class RunOutput:
     timings : list of dict of milliseconds per stage, one per accepted frame (image loading
         excluded).
     results : the OdometryResult records when ``keep_results`` was set, else empty.
+    rig : the online rig estimate after the last frame (``RigEstimate``), None when off.
+    calibration : the calibration of the last frame (``StereoCalibration``), None without
+        frames.
 
     """
 
@@ -38,6 +42,8 @@ class RunOutput:
     statuses: list
     timings: list
     results: list = field(default_factory=list)
+    rig: RigEstimate | None = None
+    calibration: StereoCalibration | None = None
 
 
 def run_frames(frames: Iterable[StereoFrame], config: Config, max_frames: int | None = None,
@@ -46,10 +52,12 @@ def run_frames(frames: Iterable[StereoFrame], config: Config, max_frames: int | 
     """Run the pipeline over frames; ignored frames (non-increasing stamps) are left out."""
     vo = StereoOdometry(config)
     stamps, poses, statuses, timings, results = [], [], [], [], []
+    rig, calibration = None, None
     for i, frame in enumerate(frames):
         if max_frames is not None and i >= max_frames:
             break
         res = vo.process(frame)
+        rig, calibration = res.rig, frame.calibration
         if progress is not None:
             progress(res)
         if not res.accepted:
@@ -62,7 +70,7 @@ def run_frames(frames: Iterable[StereoFrame], config: Config, max_frames: int | 
             results.append(res)
     return RunOutput(np.asarray(stamps, np.float64),
                      np.asarray(poses, np.float64).reshape(-1, 4, 4), statuses, timings,
-                     results)
+                     results, rig, calibration)
 
 
 def summarize_ms(values: Iterable[float]) -> dict[str, float]:
@@ -79,7 +87,9 @@ def run_stats(out: RunOutput, wall_s: float | None = None) -> dict:
     Stats JSON of a run.
 
     ``{"frames": N, "lost_frames": N, "statuses": {...}, "ms": {"total": {"mean", "median",
-    "p95"}, "<stage>": {...}}}``; the first frame (detection only) is left out of the timings.
+    "p95"}, "<stage>": {...}}, "rig": {...}}``; the first frame (detection only) is left out of
+    the timings; ``rig`` (``RigEstimate.as_dict``: offsets in pixels, angles in degrees, the
+    focal ratio in percent, with their stds) only while the rig refinement is on.
     """
     stages: dict[str, list[float]] = {}
     for t in out.timings[1:]:
@@ -92,6 +102,8 @@ def run_stats(out: RunOutput, wall_s: float | None = None) -> dict:
     lost = sum(1 for s in out.statuses if s not in good)
     stats = {'frames': len(out.statuses), 'lost_frames': lost, 'statuses': counts,
              'ms': {key: summarize_ms(v) for key, v in sorted(stages.items())}}
+    if out.rig is not None:
+        stats['rig'] = out.rig.as_dict()
     if wall_s is not None:
         stats['wall_s'] = wall_s
     return stats

@@ -3,8 +3,8 @@ The images-to-odometry pipeline: one object, one call per stereo pair.
 
 ``StereoOdometry(config).process(frame) -> OdometryResult`` runs
 
-    tracker (paper 2) -> bucketing -> RANSAC + ISPKF (paper 1) -> rolling-vehicle prior
-    (fused) -> road alignment (fused) -> pose integration
+    tracker (paper 2) -> rig correction -> bucketing -> RANSAC + ISPKF (paper 1) -> rig
+    refinement -> rolling-vehicle prior (fused) -> road alignment (fused) -> pose integration
 
 and handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
 inflated covariance for at most ``pipeline.max_lost_time_s``), calibration that changes between
@@ -29,6 +29,7 @@ from .estimator import MotionEstimator
 from .ground_plane import fit_ground_plane, road_speed, triangulate
 from .motion import rotation_from_rates, TransferModel, transform_from_velocity
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
+from .rig_calibration import apply_homography, RigCalibrator
 from .road_alignment import RoadAligner, RoadImages, RoadPlane
 from .tracker import StereoTracker
 from .vehicle_motion import lateral_constraint
@@ -103,6 +104,9 @@ class StereoOdometry:
         self.tracker = StereoTracker(self.config.tracker, self.config.bucketing)
         self.estimator = MotionEstimator(self.config)
         self.road = RoadAligner(self.config.road, self.config.ransac)
+        #: Online estimate of the rig's error (``rig``); kept by ``reset()``: it belongs to the
+        #: cameras, not to the trajectory. A new calibration starts it over.
+        self.rig = RigCalibrator(self.config.rig)
         self.reset()
 
     # -- control -----------------------------------------------------------------------
@@ -138,6 +142,7 @@ class StereoOdometry:
         self.tracker.bucketing_cfg = config.bucketing
         self.estimator.config = config
         self.road.cfg, self.road.ransac = config.road, config.ransac
+        self.rig.cfg = config.rig
 
     @property
     def status(self) -> TrackingStatus:
@@ -183,8 +188,9 @@ class StereoOdometry:
             self.estimator.reset()
         calib_changed = not calib.same_as(prev_calib)
         if calib_changed:
-            LOG.info('calibration changed: features re-detected')
+            LOG.info('calibration changed: features re-detected, rig refinement restarted')
             self.tracker.reset()
+            self.rig.reset()
         prior = None if calib_changed else self._prior(prev_calib, calib, dt)
         if prior is None and not calib_changed:
             t0 = time.perf_counter()
@@ -197,11 +203,17 @@ class StereoOdometry:
             est = None
             self.estimator.coast()
         else:
-            est = self.estimator.estimate(corr, prev_calib, dt,
+            corr_rig = self.rig.corrected(corr, prev_calib, calib)
+            est = self.estimator.estimate(corr_rig, prev_calib, dt,
                                           calib_cur=calib if calib_changed else None)
         self._check_velocity_state()
         timings['estimate'] = (time.perf_counter() - t0) * 1e3
         ok = est is not None and est.status is TrackingStatus.OK
+        if ok and not calib_changed and self.config.rig.enabled:
+            t0 = time.perf_counter()
+            self.rig.update(corr, est.inliers, est.T_prev_cur, dt, prev_calib, calib,
+                            self.tracker.last_pair(), self.config.tracker.win_size_px)
+            timings['rig'] = (time.perf_counter() - t0) * 1e3
         if ok:
             self._lost_time = 0.0
             status = TrackingStatus.OK
@@ -312,7 +324,7 @@ class StereoOdometry:
         """
         if self.estimator.velocity_unknown():
             return None
-        return self._predictor(prev_calib, calib, dt, self.estimator.mean.copy())
+        return self._predictor(prev_calib, calib, dt, self.estimator.mean.copy(), self.rig)
 
     def _road_prior(self, frame: StereoFrame, calib: StereoCalibration, dt: float):
         """
@@ -338,18 +350,30 @@ class StereoOdometry:
             return None
         LOG.info('velocity unknown: tracking with %.0f m/s forward from the road', found.speed)
         return self._predictor(calib, calib, dt,
-                               np.array([0.0, 0.0, found.speed, 0.0, 0.0, 0.0]))
+                               np.array([0.0, 0.0, found.speed, 0.0, 0.0, 0.0]), self.rig)
 
     @staticmethod
     def _predictor(prev_calib: StereoCalibration, calib: StereoCalibration, dt: float,
-                   velocity: np.ndarray):
-        """Return the constant-velocity prior of one velocity (6,) (m/s, rad/s)."""
+                   velocity: np.ndarray, rig: RigCalibrator | None = None):
+        """
+        Return the constant-velocity prior of one velocity (6,) (m/s, rad/s).
+
+        With ``rig`` the right points are corrected before the transfer and the predicted ones
+        moved to where the real right camera sees them.
+        """
+        H_prev = H_cur = None
+        if rig is not None and rig.active():
+            H_prev = rig.homography_inverse(prev_calib)
+            H_cur = np.linalg.inv(rig.homography_inverse(calib))
 
         def predict(prev_left: np.ndarray, prev_right: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
             if len(prev_left) == 0:
                 return prev_left.copy(), prev_right.copy()
-            pred = TransferModel(prev_calib, prev_left, prev_right, dt, calib).predict(velocity)
+            right = prev_right if H_prev is None else apply_homography(H_prev, prev_right)
+            pred = TransferModel(prev_calib, prev_left, right, dt, calib).predict(velocity)
+            if H_cur is not None:
+                pred[:, 2:] = apply_homography(H_cur, pred[:, 2:])
             bad = ~np.all(np.isfinite(pred), axis=1)
             pred[bad, :2] = prev_left[bad]
             pred[bad, 2:] = prev_right[bad]
@@ -407,5 +431,6 @@ class StereoOdometry:
             velocity=Rb @ v, velocity_covariance=Rb @ self.estimator.cov @ Rb.T, status=status,
             n_tracked=n_tracked, n_inliers=n_inl, iterations=iterations, timings_ms=timings,
             message=message, features=corr, inliers=inliers, accepted=accepted,
-            road_fused=road_fused, vehicle_fused=vehicle_fused)
+            road_fused=road_fused, vehicle_fused=vehicle_fused,
+            rig=self.rig.estimate(self._prev_calib) if self.config.rig.enabled else None)
         return res

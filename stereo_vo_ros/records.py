@@ -118,6 +118,69 @@ class MotionEstimate:
 
 
 @dataclass
+class RigEstimate:
+    """
+    Online estimate of the stereo rig's error (:mod:`~stereo_vo_ros.rig_calibration`).
+
+    Attributes
+    ----------
+    theta : np.ndarray
+        (5,) float64 error of the right camera against the calibration in use: roll, pitch,
+        yaw (rad, about its optical z, x, y axes; ``R = R_z R_x R_y``), focal ratio (true right
+        focal over the calibrated one, minus 1) and disparity offset (pixels; the true right
+        principal point x is ``cx - offset``).
+    covariance : np.ndarray
+        (5, 5) float64 covariance of ``theta`` (same units, squared).
+    row_offset_px, row_offset_std_px : float
+        Rows of the right image minus those of the left at the principal point (``v_R - v_L``,
+        pixels) that the estimate implies, and its std; NaN without a calibration.
+    disparity_offset_px, disparity_offset_std_px : float
+        Measured minus true disparity at the principal point (pixels) and its std.
+    updates, rejected : int
+        Pairs fused, pairs gated out since the start.
+    settled : bool
+        Both offset stds have been below ``rig.settled_std_px``.
+    enabled : bool
+        ``rig.enabled``.
+    last : str
+        What the latest pair did: updated, rejected, frozen, off or none.
+
+    """
+
+    theta: np.ndarray
+    covariance: np.ndarray
+    row_offset_px: float
+    row_offset_std_px: float
+    disparity_offset_px: float
+    disparity_offset_std_px: float
+    updates: int = 0
+    rejected: int = 0
+    settled: bool = False
+    enabled: bool = True
+    last: str = 'none'
+
+    def as_dict(self) -> dict:
+        """Plain JSON-ready form (angles in degrees, focal ratio in percent)."""
+        std = np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+        deg, dstd = np.rad2deg(self.theta[:3]), np.rad2deg(std[:3])
+        return {
+            'enabled': self.enabled, 'settled': self.settled, 'updates': self.updates,
+            'rejected': self.rejected, 'last': self.last,
+            'row_offset_px': self.row_offset_px, 'row_offset_std_px': self.row_offset_std_px,
+            'disparity_offset_px': self.disparity_offset_px,
+            'disparity_offset_std_px': self.disparity_offset_std_px,
+            'roll_deg': float(deg[0]), 'pitch_deg': float(deg[1]), 'yaw_deg': float(deg[2]),
+            'roll_std_deg': float(dstd[0]), 'pitch_std_deg': float(dstd[1]),
+            'yaw_std_deg': float(dstd[2]),
+            'focal_ratio_pct': 100.0 * float(self.theta[3]),
+            'focal_ratio_std_pct': 100.0 * float(std[3]),
+            'right_cx_offset_px': -float(self.theta[4]),
+            'right_cx_offset_std_px': float(std[4]),
+            'theta': [float(v) for v in self.theta],
+            'covariance': [[float(v) for v in row] for row in self.covariance]}
+
+
+@dataclass
 class OdometryResult:
     """
     What the pipeline returns for every stereo pair.
@@ -154,6 +217,9 @@ class OdometryResult:
         Whether the road alignment (``road`` section) was fused into this pair's motion.
     vehicle_fused : bool
         Whether the rolling-vehicle prior (``vehicle`` section) was fused into it.
+    rig : RigEstimate or None
+        The online estimate of the stereo rig's error after this pair (``rig`` section); None
+        when the refinement is off.
 
     """
 
@@ -173,3 +239,4 @@ class OdometryResult:
     accepted: bool = True
     road_fused: bool = False
     vehicle_fused: bool = False
+    rig: RigEstimate | None = None

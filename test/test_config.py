@@ -86,3 +86,12 @@ def test_road_vehicle_overlay_turns_on_the_road_parts_only():
     changed = {name for (name, value, _), (_, default, _) in zip(cfg.items(), Config().items())
                if value != default}
     assert changed == {'road.enabled', 'vehicle.nonholonomic'}
+
+
+def test_yaml_comments_are_wrapped():
+    """Every comment of the generated and the shipped YAML fits in 120 columns."""
+    for text in (to_yaml(), (REPO / 'config' / 'stereo_vo.yaml').read_text()):
+        too_long = [line for line in text.splitlines() if len(line) > 120]
+        assert not too_long, f'{len(too_long)} lines longer than 120 characters: {too_long[:3]}'
+    comments = [line for line in to_yaml().splitlines() if line.lstrip().startswith('#')]
+    assert max(map(len, comments)) <= config_mod.YAML_COMMENT_WIDTH

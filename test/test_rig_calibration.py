@@ -1,0 +1,281 @@
+"""Online refinement of the stereo rig (rig_calibration.py) on synthetic correspondences."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stereo_vo_ros import cli
+from stereo_vo_ros.camera import StereoCalibration
+from stereo_vo_ros.config import Config
+from stereo_vo_ros.datasets import write_kitti
+from stereo_vo_ros.estimator import MotionEstimator
+from stereo_vo_ros.motion import transform_from_velocity
+from stereo_vo_ros.pipeline import StereoOdometry
+from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
+from stereo_vo_ros.rig_calibration import apply_homography, camera_info_yaml, measure_rows, \
+    offsets_at_centre, pinned_rows, refined_camera_infos, rig_jacobian, RigCalibrator, \
+    right_homography
+from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
+import yaml
+
+FX, CX, CY, BASELINE, W, H = 718.856, 607.19, 185.22, 0.537, 1241, 376
+DT = 0.1
+#: A good real rig's residual error: roll 0.01 deg, pitch 0.02 deg (rows +0.25 px), yaw
+#: 0.008 deg and a principal point 0.05 px off (disparity +0.15 px), right focal +0.03 %.
+THETA = np.array([np.deg2rad(0.01), np.deg2rad(0.02), np.deg2rad(0.008), 3e-4, 0.05])
+FORWARD = np.array([0.0, 0.0, 10.0, 0.0, np.deg2rad(1.0), 0.0])
+
+
+def kitti_calibration():
+    P0 = np.array([[FX, 0, CX, 0], [0, FX, CY, 0], [0, 0, 1, 0]])
+    P1 = P0.copy()
+    P1[0, 3] = -FX * BASELINE
+    return StereoCalibration.from_projections(P0, P1, W, H)
+
+
+def project(P, X):
+    h = X @ P[:, :3].T + P[:, 3]
+    return h[:, :2] / h[:, 2:]
+
+
+def scene(rng, n, x_range=(10.0, W - 10.0)):
+    """Points (n, 3) seen at pixels uniform in the image, inverse depth uniform in 4-120 m."""
+    x, y = rng.uniform(*x_range, n), rng.uniform(10.0, H - 10.0, n)
+    z = 1.0 / rng.uniform(1.0 / 120.0, 1.0 / 4.0, n)
+    return np.column_stack([(x - CX) / FX * z, (y - CY) / FX * z, z])
+
+
+def observe(calib, theta, X, T_prev_cur, rng, noise_px=0.15, X_cur=None):
+    """Correspondences of points X (previous left frame) through a rig with error theta."""
+    if X_cur is None:
+        X_cur = (X - T_prev_cur[:3, 3]) @ T_prev_cur[:3, :3]
+    Hr = right_homography(calib.K_right, theta)
+    PL, PR = calib.projection_left(), calib.projection_right()
+    views = [project(PL, X), apply_homography(Hr, project(PR, X)), project(PL, X_cur),
+             apply_homography(Hr, project(PR, X_cur))]
+    views = [v + rng.normal(0.0, noise_px, v.shape) for v in views]
+    ok = np.all([(v[:, 0] > 0) & (v[:, 0] < W) & (v[:, 1] > 0) & (v[:, 1] < H)
+                 for v in views], axis=0) & (X_cur[:, 2] > 1.0)
+    n = int(np.count_nonzero(ok))
+    return Correspondences(*[v[ok] for v in views], np.arange(n), np.ones(n, np.int64))
+
+
+def run_filter(rig, calib, theta, pairs, rng, velocity=FORWARD, n_points=180):
+    """Feed ``pairs`` synthetic pairs (all inliers) to the rig filter; return the statuses."""
+    T = transform_from_velocity(velocity, DT)
+    statuses = []
+    for _ in range(pairs):
+        corr = observe(calib, theta, scene(rng, n_points), T, rng)
+        statuses.append(rig.update(corr, np.ones(len(corr), bool), T, DT, calib, calib))
+    return statuses
+
+
+def offsets_error(rig, calib, theta):
+    """Estimated minus true (row, disparity) offsets at the principal point, and their stds."""
+    C = offsets_at_centre(calib.K_right)
+    est = rig.estimate(calib)
+    err = np.array([est.row_offset_px, est.disparity_offset_px]) - C @ theta
+    return err, np.array([est.row_offset_std_px, est.disparity_offset_std_px])
+
+
+def test_homography_follows_the_renderer_convention():
+    calib = kitti_calibration()
+    K = calib.K_right
+    roll, pitch, yaw = THETA[:3]
+    R = (Rotation.from_euler('z', roll) * Rotation.from_euler('x', pitch) *
+         Rotation.from_euler('y', yaw)).as_matrix()
+    K_err = K.copy()
+    K_err[:2, :2] *= 1.0 + THETA[3]
+    K_err[0, 2] -= THETA[4]
+    np.testing.assert_allclose(right_homography(K, THETA), K_err @ R.T @ np.linalg.inv(K),
+                               atol=1e-12)
+    # Positive pitch moves right rows down; yaw and the offset grow the disparity.
+    C = offsets_at_centre(K)
+    assert C[0] @ THETA == pytest.approx(FX * THETA[1], rel=1e-9)
+    assert C[1] @ THETA == pytest.approx(FX * THETA[2] + THETA[4], rel=1e-9)
+    centre = apply_homography(right_homography(K, THETA), K[:2, 2][None])[0]
+    assert centre[1] - CY == pytest.approx(FX * np.tan(THETA[1]), rel=1e-3)
+
+
+def test_jacobian_matches_finite_differences():
+    calib = kitti_calibration()
+    pts = np.array([[10.0, 10.0], [CX, CY], [1230.0, 370.0], [300.0, 50.0]])
+    J = rig_jacobian(calib.K_right, pts)
+    for k in range(5):
+        step = np.zeros(5)
+        step[k] = 1e-6 if k < 4 else 1e-4
+        num = (apply_homography(right_homography(calib.K_right, step), pts) -
+               apply_homography(right_homography(calib.K_right, -step), pts)) / (2 * step[k])
+        np.testing.assert_allclose(J[:, :, k], num, rtol=1e-4, atol=1e-6)
+
+
+def test_converges_to_a_known_rig_error():
+    rng = np.random.default_rng(0)
+    calib = kitti_calibration()
+    rig = RigCalibrator(Config().rig)
+    statuses = run_filter(rig, calib, THETA, 150, rng)
+    assert statuses.count('updated') >= 145
+    err, std = offsets_error(rig, calib, THETA)
+    # Rows +0.25 px and disparity +0.15 px recovered to a few hundredths of a pixel.
+    assert np.abs(err).max() < 0.02, (err, std)
+    assert np.all(np.abs(err) < 4 * std + 1e-3)
+    assert rig.estimate(calib).settled
+    # Everywhere in the image, not only at the centre.
+    grid = np.stack(np.meshgrid(np.linspace(20, W - 20, 7), np.linspace(20, H - 20, 5)),
+                    -1).reshape(-1, 2)
+    left = np.einsum('nij,j->ni', rig_jacobian(calib.K_right, grid), rig.theta - THETA)
+    assert np.abs(left).max() < 0.05
+
+
+def test_correction_undoes_the_rig_error():
+    rng = np.random.default_rng(1)
+    calib = kitti_calibration()
+    rig = RigCalibrator(Config().rig)
+    rig.theta = THETA.copy()
+    T = transform_from_velocity(FORWARD, DT)
+    exact = observe(calib, np.zeros(5), scene(rng, 50), T, rng, noise_px=0.0)
+    Hr = right_homography(calib.K_right, THETA)
+    seen = Correspondences(exact.prev_left, apply_homography(Hr, exact.prev_right),
+                           exact.cur_left, apply_homography(Hr, exact.cur_right))
+    fixed = rig.corrected(seen, calib, calib)
+    np.testing.assert_allclose(fixed.prev_right, exact.prev_right, atol=1e-9)
+    np.testing.assert_allclose(fixed.cur_right, exact.cur_right, atol=1e-9)
+    assert seen.prev_right is not fixed.prev_right  # input not modified
+    # A right point whose row the tracker copied from the left one keeps that row and only has
+    # its column corrected.
+    pinned = Correspondences(seen.prev_left, seen.prev_right.copy(), seen.cur_left,
+                             seen.cur_right.copy())
+    pinned.cur_right[:, 1] = pinned.cur_left[:, 1]
+    assert pinned_rows(calib, pinned.cur_left, pinned.cur_right).all()
+    out = rig.corrected(pinned, calib, calib)
+    np.testing.assert_allclose(out.cur_right[:, 1], pinned.cur_left[:, 1], atol=2e-3)
+    np.testing.assert_allclose(out.cur_right[:, 0], exact.cur_right[:, 0], atol=2e-3)
+
+
+def test_exact_rig_stays_at_zero():
+    rng = np.random.default_rng(2)
+    calib = kitti_calibration()
+    rig = RigCalibrator(Config().rig)
+    run_filter(rig, calib, np.zeros(5), 100, rng)
+    err, std = offsets_error(rig, calib, np.zeros(5))
+    assert np.all(np.abs(err) < 3 * std), (err, std)
+    assert np.abs(err).max() < 0.01
+
+
+def test_static_camera_freezes_the_estimate():
+    rng = np.random.default_rng(3)
+    calib = kitti_calibration()
+    rig = RigCalibrator(Config().rig)
+    statuses = run_filter(rig, calib, THETA, 20, rng, velocity=np.zeros(6))
+    assert set(statuses) == {'frozen'}
+    np.testing.assert_array_equal(rig.theta, np.zeros(5))
+    assert rig.estimate(calib).updates == 0
+    # Too few inliers freeze it as well.
+    T = transform_from_velocity(FORWARD, DT)
+    corr = observe(calib, THETA, scene(rng, 10), T, rng)
+    assert rig.update(corr, np.ones(len(corr), bool), T, DT, calib, calib) == 'frozen'
+
+
+def test_moving_truck_on_half_of_the_points_does_not_move_it():
+    """The estimator's RANSAC inliers keep a truck (second rigid motion) out of the rig."""
+    rng = np.random.default_rng(4)
+    calib = kitti_calibration()
+    cfg = Config()
+    est, rig = MotionEstimator(cfg), RigCalibrator(cfg.rig)
+    T = transform_from_velocity(FORWARD, DT)
+    # The truck drives ahead of the camera, 1 m/s faster, turning slightly: points 8-20 m
+    # ahead in the left half of the image.
+    T_truck = transform_from_velocity(np.array([0.0, 0.0, -1.0, 0.0, 0.02, 0.0]), DT)
+    truck_seen, n_pairs = [], 40
+    for k in range(n_pairs):
+        X = scene(rng, 100)
+        corr = observe(calib, np.zeros(5), X, T, rng)
+        if k >= 5:  # the truck enters after a few pairs
+            x = rng.uniform(10.0, CX, 100)
+            y = rng.uniform(10.0, H - 10.0, 100)
+            z = rng.uniform(8.0, 20.0, 100)
+            Xt = np.column_stack([(x - CX) / FX * z, (y - CY) / FX * z, z])
+            Xt_cur = (Xt - T[:3, 3]) @ T[:3, :3]  # as if static ...
+            Xt_cur = Xt_cur @ T_truck[:3, :3].T + T_truck[:3, 3]  # ... plus its own motion
+            truck = observe(calib, np.zeros(5), Xt, T, rng, X_cur=Xt_cur)
+            corr = Correspondences(*(np.vstack([getattr(corr, f), getattr(truck, f)]) for f in
+                                     ('prev_left', 'prev_right', 'cur_left', 'cur_right')),
+                                   np.arange(len(corr) + len(truck)),
+                                   np.ones(len(corr) + len(truck), np.int64))
+            truck_seen.append(len(truck) / len(corr))
+        res = est.estimate(rig.corrected(corr, calib, calib), calib, DT)
+        assert res.status is TrackingStatus.OK
+        rig.update(corr, res.inliers, res.T_prev_cur, DT, calib, calib)
+    assert np.mean(truck_seen) > 0.4
+    err, std = offsets_error(rig, calib, np.zeros(5))
+    assert np.all(np.abs(err) < 3 * std), (err, std)
+    assert np.abs(err).max() < 0.02
+
+
+def test_measure_rows_finds_a_vertical_offset():
+    rng = np.random.default_rng(5)
+    base = rng.uniform(0, 255, (60, 80)).astype(np.float32)
+    base = cv2.GaussianBlur(cv2.resize(base, (320, 240)), (0, 0), 1.5)
+    left = base[20:200, 20:300]
+    shifted = cv2.warpAffine(base, np.array([[1.0, 0, -6.0], [0, 1.0, 0.3]]), (320, 240),
+                             flags=cv2.INTER_CUBIC)[20:200, 20:300]
+    pts = np.array([[60.0, 50.0], [140.0, 90.0], [200.0, 120.0]])
+    found = measure_rows(left.astype(np.uint8), shifted.astype(np.uint8), pts,
+                         pts + [-6.0, 0.0], 13)
+    np.testing.assert_allclose(found[:, 1] - pts[:, 1], 0.3, atol=0.06)
+
+
+def test_pipeline_without_the_rig_behaves_as_before():
+    """Off: no rig in the results; on but frozen (theta 0): the same poses as off."""
+    spec = SequenceSpec.preset('demo', n_frames=6, moving_objects=0)
+    renderer = StereoRenderer(spec)
+    frames = [renderer.render(i).stereo_frame(spec.calibration()) for i in range(6)]
+    off = StereoOdometry(Config().replace(**{'rig.enabled': False}))
+    frozen = StereoOdometry(Config().replace(**{'rig.min_translation_m': 100.0}))
+    for f in frames:
+        a, b = off.process(f), frozen.process(StereoFrame(f.left, f.right, f.stamp_s,
+                                                          f.calibration))
+        assert a.rig is None and 'rig' not in a.timings_ms
+        assert b.rig is not None and b.rig.updates == 0
+        np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+    assert a.status is TrackingStatus.OK
+
+
+def test_refined_calibration_reproduces_the_rig_error():
+    """The saved calibration, loaded as raw input, projects as the rig error says."""
+    calib = kitti_calibration()
+    left, right = refined_camera_infos(calib, THETA)
+    refined = StereoCalibration.from_camera_info(left, right, 'raw')
+    rng = np.random.default_rng(6)
+    X = scene(rng, 30)
+    seen = apply_homography(right_homography(calib.K_right, THETA),
+                            project(calib.projection_right(), X))
+    np.testing.assert_allclose(project(refined.projection_right(), X), seen, atol=1e-9)
+    np.testing.assert_allclose(project(refined.projection_left(), X),
+                               project(calib.projection_left(), X), atol=1e-9)
+    doc = yaml.safe_load(camera_info_yaml(left, right))
+    assert doc['right']['camera_matrix']['data'] == pytest.approx(right['k'])
+    assert doc['right']['rectification_matrix']['data'] == pytest.approx(right['r'])
+
+
+def test_run_writes_the_estimate_and_the_refined_calibration(tmp_path):
+    spec = SequenceSpec.preset('demo', n_frames=8, moving_objects=0)
+    renderer = StereoRenderer(spec)
+    write_kitti(tmp_path / 'seq', (renderer.render(i).stereo_frame(spec.calibration())
+                                   for i in range(8)))
+    out = tmp_path / 'calib.yaml'
+    assert cli.main(['run', str(tmp_path / 'seq'), '--poses', str(tmp_path / 'poses.txt'),
+                     '--stats', str(tmp_path / 'stats.json'), '--save-calibration', str(out),
+                     '-q']) == 0
+    rig = json.loads((tmp_path / 'stats.json').read_text())['rig']
+    assert rig['updates'] > 0 and rig['enabled']
+    for key in ('row_offset_px', 'row_offset_std_px', 'disparity_offset_px',
+                'disparity_offset_std_px', 'roll_deg', 'pitch_deg', 'yaw_deg',
+                'focal_ratio_pct', 'right_cx_offset_px', 'settled', 'covariance'):
+        assert key in rig
+    doc = yaml.safe_load(out.read_text())
+    assert doc['left']['image_width'] == spec.width
+    assert len(doc['right']['projection_matrix']['data']) == 12
