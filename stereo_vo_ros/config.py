@@ -367,6 +367,57 @@ class VehicleConfig:
 
 
 @dataclass
+class RigConfig:
+    """Online refinement of the stereo rig: the right camera's error (rig_calibration.py)."""
+
+    enabled: bool = _f(
+        True, "Estimate the right camera's residual rotation, focal ratio and disparity offset "
+        'against the calibration while running (a slow Kalman filter fed by a small bundle '
+        'adjustment of every pair) and correct the right measurements by it. The absolute '
+        'baseline and the common focal length (metric scale) are not observable and not '
+        'estimated.', dynamic=True)
+    min_points: int = _f(
+        30, 'Fewest inliers of the motion estimate a pair needs to measure the rig.', 8, 10000,
+        dynamic=True)
+    min_translation_m: float = _f(
+        0.1, 'The rig is not measured on pairs that moved less than this (m): standing still '
+        'repeats the same stereo matches and tells nothing about the disparity offset.',
+        0.0, 100.0, dynamic=True)
+    iterations: int = _f(
+        1, 'Gauss-Newton steps of the per-pair bundle adjustment (points and motion) before its '
+        'information on the rig is taken (it starts from the motion estimate and the previous '
+        "pair's triangulation; a second step changed nothing on synthetic pairs).", 1, 20,
+        dynamic=True)
+    huber_sigmas: float = _f(
+        2.0, 'Huber constant of the bundle adjustment in residual sigmas.', 0.5, 100.0,
+        dynamic=True)
+    outlier_sigmas: float = _f(
+        5.0, 'A point with a residual above this many sigmas is left out of the pair.',
+        2.0, 100.0, dynamic=True)
+    min_sigma_px: float = _f(
+        0.02, 'Floor of the residual scale of a pair (pixels).', 1e-4, 10.0, dynamic=True)
+    measurement_inflation: float = _f(
+        4.0, "Factor on each pair's measurement covariance: a stereo match is seen by two "
+        'consecutive pairs and a feature keeps its tracking bias over its life, so the pairs '
+        'are not independent.', 1.0, 1e6, dynamic=True)
+    prior_angle_std_deg: float = _f(
+        0.05, 'Prior std of each rotation angle of the right camera (deg).', 1e-6, 10.0)
+    prior_focal_ratio_std: float = _f(
+        1e-3, 'Prior std of the right focal length relative to the calibrated one.', 1e-9, 0.1)
+    prior_disparity_offset_std_px: float = _f(
+        0.5, 'Prior std of the disparity offset (right principal point x, pixels).', 1e-6, 50.0)
+    time_constant_s: float = _f(
+        1e6, 'Time constant of the Gauss-Markov process of the rig error (s): the estimate '
+        'forgets at this rate, its uncertainty grows back towards the prior. 1e6 s lets the '
+        'disparity offset at the principal point drift by about 0.07 px per hour (a random '
+        'walk) and remembers a few hundred pairs at 10 Hz.', 1.0, 1e12, dynamic=True)
+    settled_std_px: float = _f(
+        0.01, 'The estimate counts as settled (logged once) when the std of the row and of the '
+        'disparity offset at the principal point are below this (pixels).', 1e-4, 10.0,
+        dynamic=True)
+
+
+@dataclass
 class RosConfig:
     """ROS 2 adapter: frames, topics, synchronisation and outputs."""
 
@@ -413,6 +464,7 @@ class Config:
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     road: RoadConfig = field(default_factory=RoadConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
     ros: RosConfig = field(default_factory=RosConfig)
 
     def __post_init__(self) -> None:
