@@ -98,6 +98,13 @@ class TrackerConfig:
         1, 10, dynamic=True)
     affine_iterations: int = _f(
         3, 'Gauss-Newton steps of the affine refinement.', 1, 50, dynamic=True)
+    photometric_compensation: bool = _f(
+        True, 'Before every KLT pass, map the second image to the brightness of the first with '
+        'one gain and offset (not in the paper; see photometric.py), fitted to the windows '
+        'around the features (predicted positions) or, without them, to the grey-level '
+        'histograms: KLT compares squared differences, so independent exposure changes of the '
+        'cameras break it. A map that moves no grey level of 16-240 by 4 or more is not '
+        'applied.', dynamic=True)
     variant: str = _f(
         'full', 'Which checks run: baseline (forward-backward + left-right, VINS-Fusion), '
         'dc (+disparity constraint), bc (+bi-circular check), db (dc+bc, fixed threshold), '

@@ -21,6 +21,10 @@ quadruples (left t1, right t1, left t2, right t2) of the features that survive, 
    lack features, away from the existing features (and, with a motion prior, not edge-like
    along their predicted flow), and matched (and refined) into the right image.
 
+Before every KLT pass the second image is mapped to the brightness of the first with one gain
+and offset (``photometric_compensation``, not in the paper: see ``photometric``), so
+independent exposure changes of the two cameras do not break the squared-difference KLT.
+
 A feature is deleted at its first failed check. Which checks run is set by
 ``TrackerConfig.variant`` (see ``klt_checks.CheckSet``). KLT runs on the images as given (raw
 pixels); the correspondences handed to the estimator are undistorted to the ideal pinhole pixels
@@ -47,6 +51,7 @@ from .errors import ConfigError, ImageError
 from .klt_checks import (
     bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint, disparity_in_range,
     eigen_ratio, flow_edge_ratio, lk_pass, round_trip_error)
+from .photometric import PhotometricMatcher
 from .records import Correspondences
 
 logger = logging.getLogger(__name__)
@@ -471,6 +476,7 @@ class StereoTracker:
         self._feats = _Features.empty()
         self._bits = 8
         self._barren: np.ndarray | None = None  # (rows, cols) frames to skip each bucket
+        self._photo = PhotometricMatcher()
 
     @property
     def num_features(self) -> int:
@@ -539,6 +545,7 @@ class StereoTracker:
             raise ImageError(f'image size {left8.shape[1]}x{left8.shape[0]} does not match the '
                              f'calibration size {calib.size[0]}x{calib.size[1]}')
         stats = TrackerStats()
+        self._photo.enabled = bool(self.cfg.photometric_compensation)
         if self._prev is None or self._prev[0].shape != left8.shape or \
                 not calib.same_as(self._calib):
             if self._prev is not None:
@@ -555,6 +562,7 @@ class StereoTracker:
         # Own copies: the caller may reuse its image buffers.
         self._prev = (left8.copy() if np.may_share_memory(left8, left) else left8,
                       right8.copy() if np.may_share_memory(right8, right) else right8)
+        self._photo.carry(((left8, self._prev[0]), (right8, self._prev[1])))
         stats.n_features = len(self._feats)
         stats.timings_ms['total'] = (CLOCK() - t_start) * 1e3
         f = self._feats
@@ -643,8 +651,12 @@ class StereoTracker:
             failed['flow_aperture'] = int(np.count_nonzero(~ok))
             alive = alive[ok]
         npts['temporal_fwd'] = len(alive)
+        # Photometric compensation: every KLT pass sees its second image mapped to the
+        # brightness of its first (``photometric``; the images as given when they match).
+        left_m = self._photo.matched(
+            prev_left, left, f.left_raw[alive], None if pred is None else pred[0][alive])
         cur_l = f.left_raw.copy()
-        cur_l[alive], ok = lk_pass(prev_left, left, f.left_raw[alive],
+        cur_l[alive], ok = lk_pass(prev_left, left_m, f.left_raw[alive],
                                    None if pred is None else pred[0][alive], levels, win, iters)
         ms['temporal_fwd'] = (clock() - t) * 1e3
         failed['temporal'] = int(np.count_nonzero(~ok))
@@ -652,7 +664,7 @@ class StereoTracker:
 
         t = clock()
         npts['temporal_bwd'] = len(alive)
-        back, ok = lk_pass(left, prev_left, cur_l[alive], f.left_raw[alive],
+        back, ok = lk_pass(left_m, prev_left, cur_l[alive], f.left_raw[alive],
                            REVERSE_PYRAMID_LEVELS, win, iters)
         ok &= round_trip_error(f.left_raw[alive], back) < cfg.fb_threshold_px
         ms['temporal_bwd'] = (clock() - t) * 1e3
@@ -668,7 +680,8 @@ class StereoTracker:
             predicted = pred[1][alive] - pred[0][alive]
             offset = np.where(np.isfinite(predicted), predicted, offset)
         npts['stereo_fwd'] = len(alive)
-        cur_r, ok = lk_pass(left, right, cur_l[alive], cur_l[alive] + offset,
+        right_m = self._photo.matched(left, right, cur_l[alive], cur_l[alive] + offset)
+        cur_r, ok = lk_pass(left, right_m, cur_l[alive], cur_l[alive] + offset,
                             cfg.predicted_pyramid_levels, win, iters)
         failed['stereo'] = int(np.count_nonzero(~ok))
         alive, cur_r = alive[ok], cur_r[ok]
@@ -691,7 +704,8 @@ class StereoTracker:
         # Left-right check (eq. 5); without the disparity constraint the range check follows.
         t = clock()
         npts['stereo_bwd'] = len(alive)
-        back, ok = lk_pass(right, left, cur_r, cur_l[alive], REVERSE_PYRAMID_LEVELS, win, iters)
+        back, ok = lk_pass(right_m, left, cur_r, cur_l[alive], REVERSE_PYRAMID_LEVELS, win,
+                           iters)
         ok &= round_trip_error(cur_l[alive], back) < cfg.lr_threshold_px
         failed['lr'] = int(np.count_nonzero(~ok))
         if not checks.disparity_constraint:
@@ -715,12 +729,13 @@ class StereoTracker:
             npts['bicircular'] = len(alive)
             # Start right(t1) from right(t2) moved back by the measured left flow.
             guess = cur_r + (f.left_raw[alive] - cur_l[alive])
-            back_r, ok = lk_pass(right, prev_right, cur_r, guess, cfg.predicted_pyramid_levels,
-                                 win, iters)
+            prev_right_m = self._photo.matched(right, prev_right, cur_r, f.right_raw[alive])
+            back_r, ok = lk_pass(right, prev_right_m, cur_r, guess,
+                                 cfg.predicted_pyramid_levels, win, iters)
             again = None
             if cfg.bicircular_mode == 'roundtrip':
                 again = np.full_like(cur_r, np.nan)
-                again[ok], ok2 = lk_pass(prev_right, right, back_r[ok], cur_r[ok],
+                again[ok], ok2 = lk_pass(prev_right_m, right, back_r[ok], cur_r[ok],
                                          REVERSE_PYRAMID_LEVELS, win, iters)
                 ok[ok] = ok2
             err = bicircular_error(cfg.bicircular_mode, cur_r, back_r, f.right_raw[alive], again)
@@ -810,10 +825,12 @@ class StereoTracker:
         pr = np.empty_like(pts)
         ok = np.zeros(len(pts), bool)
         stats.pass_points['new_stereo_fwd'] = len(pts)
+        right_m = self._photo.matched(left, right)
         for sel, levels in ((guided, cfg.predicted_pyramid_levels),
                             (~guided, cfg.pyramid_levels)):
             if sel.any():
-                pr[sel], ok[sel] = lk_pass(left, right, pts[sel], guess[sel], levels, win, iters)
+                pr[sel], ok[sel] = lk_pass(left, right_m, pts[sel], guess[sel], levels, win,
+                                           iters)
         pts, pr = pts[ok], pr[ok]
         il, ir = calib.undistort_left(pts), calib.undistort_right(pr)
         ok = disparity_in_range(calib, il, ir, cfg.min_disparity_px, cfg.max_disparity_px)
@@ -823,7 +840,7 @@ class StereoTracker:
         stats.timings_ms['stereo_fwd'] += (CLOCK() - t) * 1e3
         t = CLOCK()
         stats.pass_points['new_stereo_bwd'] = len(pts)
-        back, ok = lk_pass(right, left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
+        back, ok = lk_pass(right_m, left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
         ok &= round_trip_error(pts, back) < cfg.lr_threshold_px
         stats.timings_ms['stereo_bwd'] += (CLOCK() - t) * 1e3
         if cfg.affine_refinement and ok.any():

@@ -1,0 +1,296 @@
+"""
+Photometric compensation of a KLT pass: one gain and offset between two images.
+
+OpenCV's pyramidal KLT minimises the sum of squared differences of the two windows, so a gain
+or offset between the images moves the estimate and, beyond about 10 %, breaks the tracking
+(rendered urban scenes with each camera's gain jumping independently by a factor 0.7-1.3 per
+frame plus vignetting, preset ``urban_photometric``: 65-111 of 150 pairs not OK and 23 % mean
+t_rel over seeds 0-5; see ``benchmarks/diag_photometric.py``). Before every KLT pass between
+two images, the second image is mapped to the brightness of the first with one affine
+grey-level map ``I' = gain I + offset`` (a 256-entry lookup table):
+
+* from corresponding points when the tracker has them (``window_transfer``): the features'
+  positions in the first image and their predicted (temporal pass with the motion prior, stereo
+  pass from the previous disparity) or known (bi-circular pass: the stored right points)
+  positions in the second; ``gain`` is the median ratio of the standard deviations of 21x21
+  windows around them (at most 64 windows, every second pixel) and ``offset`` the median
+  difference of their means after the gain, over the textured, unsaturated windows. Medians of
+  window statistics do not need exact positions;
+* otherwise (first pair, no motion prior) from the grey-level histograms of the two images
+  (``brightness_transfer``): their quantiles 5 %, 10 %, ..., 95 % are matched and a line is
+  fitted to the pairs, leaving out saturated grey levels;
+* a map that moves no grey level of 16-240 by 4 or more is not applied, so an exactly exposed
+  pair is tracked on the images as given (exact renders: 8 of 596 maps applied).
+
+A fixed per-camera vignetting is not a global gain; between the two cameras it leaves a
+residual gain that varies slowly across the image (a few % for 30 % vignetting that differs by
+10 % between the cameras), which KLT tolerates, and the affine refinement (``affine_klt``)
+compares zero-mean windows scaled to equal contrast, which removes any local gain and offset.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: Quantiles matched between the two histograms.
+QUANTILES = np.arange(0.05, 0.951, 0.05)
+#: Grey levels at either end treated as saturated (quantiles there are left out).
+SATURATED_GREY = 2
+#: A map is applied only when it moves some grey level of ``TYPICAL_GREY`` by at least this
+#: (grey levels): on exactly exposed renders (urban and highway, seed 0) the maps from
+#: corresponding windows have gains of 0.99-1.02 and offsets of -2..+1.4 grey levels (5-95 %),
+#: noise that KLT does not notice; with 4 grey levels 8 of 596 maps are applied there.
+MIN_CHANGE_GREY = 4.0
+#: Range of the grey levels that decide whether a map is applied (the bulk of an image).
+TYPICAL_GREY = (16.0, 240.0)
+#: Accepted gain range; outside it the images are taken as too different to compare.
+GAIN_RANGE = (0.25, 4.0)
+#: Half side of the windows whose statistics give the map from corresponding points (pixels).
+WINDOW_HALF_PX = 10
+#: Windows flatter than this (standard deviation, grey levels) are left out.
+MIN_WINDOW_STD_GREY = 4.0
+#: Fewest usable windows for a map from corresponding points (else the histograms are used).
+MIN_WINDOWS = 12
+#: At most this many windows (spread over the points given) are sampled, every
+#: ``WINDOW_STEP_PX``-th pixel in both directions: the medians need no more, and the cost
+#: stays at about 0.1 ms per map.
+MAX_WINDOWS = 64
+WINDOW_STEP_PX = 2
+
+
+def histogram(img: np.ndarray) -> np.ndarray:
+    """
+    Return the normalised cumulative grey-level histogram of a uint8 image.
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) uint8 grey image.
+
+    Returns
+    -------
+    np.ndarray
+        (256,) float64 share of the pixels at or below each grey level (last value 1).
+
+    """
+    hist = cv2.calcHist([img], [0], None, [256], [0, 256]).ravel().astype(np.float64)
+    cdf = np.cumsum(hist)
+    return cdf / max(cdf[-1], 1.0)
+
+
+def _quantiles(cdf: np.ndarray) -> np.ndarray:
+    """Grey levels (float64) of ``QUANTILES`` from a cumulative histogram (interpolated)."""
+    # Grey level g holds the values in [g - 0.5, g + 0.5); the CDF reaches cdf[g] at g + 0.5.
+    edges = np.arange(257, dtype=np.float64) - 0.5
+    cum = np.concatenate([[0.0], cdf])
+    # Strictly increasing support for np.interp: drop empty bins.
+    keep = np.concatenate([[True], np.diff(cum) > 0])
+    return np.interp(QUANTILES, cum[keep], edges[keep])
+
+
+def brightness_transfer(cdf_from: np.ndarray, cdf_to: np.ndarray) -> tuple[float, float]:
+    """
+    Gain and offset that map the grey levels of one image to those of another.
+
+    Parameters
+    ----------
+    cdf_from, cdf_to : np.ndarray
+        (256,) cumulative histograms (``histogram``) of the image to be mapped and of the
+        reference image.
+
+    Returns
+    -------
+    gain : float
+        Unitless; ``gain * I_from + offset`` has the brightness of the reference.
+    offset : float
+        Grey levels. (1, 0) when too few quantiles are usable or the fit is implausible.
+
+    """
+    q_from, q_to = _quantiles(cdf_from), _quantiles(cdf_to)
+    lo, hi = SATURATED_GREY - 0.5, 255.5 - SATURATED_GREY
+    ok = (q_from > lo) & (q_from < hi) & (q_to > lo) & (q_to < hi)
+    if np.count_nonzero(ok) < 4 or np.ptp(q_from[ok]) < 8.0:
+        return 1.0, 0.0
+    gain, offset = np.polyfit(q_from[ok], q_to[ok], 1)
+    if not (GAIN_RANGE[0] <= gain <= GAIN_RANGE[1]) or not np.isfinite(offset):
+        return 1.0, 0.0
+    return float(gain), float(offset)
+
+
+def window_transfer(img_from: np.ndarray, pts_from: np.ndarray, img_to: np.ndarray,
+                    pts_to: np.ndarray, half: int = WINDOW_HALF_PX
+                    ) -> tuple[float, float] | None:
+    """
+    Gain and offset from the windows around corresponding points of two images.
+
+    Parameters
+    ----------
+    img_from, img_to : np.ndarray
+        (H, W) uint8 grey images: the one to be mapped and the reference.
+    pts_from, pts_to : np.ndarray
+        (N, 2) float positions (pixels) of the same scene points in each (a prediction is
+        enough: window means and contrasts change slowly with the position).
+    half : int
+        Half side of the square windows (pixels).
+
+    Returns
+    -------
+    tuple of float or None
+        ``(gain, offset)`` (unitless, grey levels) with ``gain`` the median ratio of the window
+        standard deviations and ``offset`` the median of ``mean_to - gain * mean_from``, over
+        the windows inside both images, textured (standard deviation above
+        ``MIN_WINDOW_STD_GREY``) and not saturated; None with fewer than ``MIN_WINDOWS``.
+
+    """
+    pts_from = np.asarray(pts_from, np.float64).reshape(-1, 2)
+    pts_to = np.asarray(pts_to, np.float64).reshape(-1, 2)
+    if len(pts_from) > MAX_WINDOWS:
+        pick = np.linspace(0, len(pts_from) - 1, MAX_WINDOWS).astype(np.int64)
+        pts_from, pts_to = pts_from[pick], pts_to[pick]
+    a = _windows(img_from, pts_from, half)
+    b = _windows(img_to, pts_to, half)
+    if a is None or b is None:
+        return None
+    ok = a[2] & b[2] & (a[1] > MIN_WINDOW_STD_GREY) & (b[1] > MIN_WINDOW_STD_GREY)
+    if np.count_nonzero(ok) < MIN_WINDOWS:
+        return None
+    gain = float(np.median(b[1][ok] / a[1][ok]))
+    if not GAIN_RANGE[0] <= gain <= GAIN_RANGE[1]:
+        return None
+    offset = float(np.median(b[0][ok] - gain * a[0][ok]))
+    return gain, offset
+
+
+def _windows(img: np.ndarray, pts: np.ndarray, half: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Mean, standard deviation and usability (N,) of the windows at the rounded points."""
+    p = np.asarray(pts, np.float64).reshape(-1, 2)
+    if not len(p):
+        return None
+    h, w = img.shape
+    finite = np.all(np.isfinite(p), axis=1)
+    c = np.rint(np.where(finite[:, None], p, 0.0)).astype(np.int64)
+    inside = finite & (c[:, 0] >= half) & (c[:, 0] < w - half) & (c[:, 1] >= half) & (
+        c[:, 1] < h - half)
+    c[~inside] = half
+    r = np.arange(-half, half + 1, WINDOW_STEP_PX)
+    offsets = (r[:, None] * w + r[None, :]).ravel()
+    win = np.take(img, (c[:, 1] * w + c[:, 0])[:, None] + offsets)
+    sat = (win.max(axis=1) >= 255 - SATURATED_GREY) | (win.min(axis=1) <= SATURATED_GREY)
+    win = win.astype(np.float32)
+    mean = win.sum(axis=1) / win.shape[1]
+    var = np.einsum('nk,nk->n', win, win) / win.shape[1] - mean * mean
+    return mean, np.sqrt(np.maximum(var, 0.0)), inside & ~sat
+
+
+def apply_transfer(img: np.ndarray, gain: float, offset: float,
+                   min_change: float = MIN_CHANGE_GREY) -> np.ndarray:
+    """
+    Map a uint8 image through ``gain * I + offset`` (rounded, clipped), or return it as is.
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) uint8 grey image. Not modified.
+    gain, offset : float
+        The map (unitless, grey levels), e.g. from ``brightness_transfer``.
+    min_change : float
+        The image itself is returned when no grey level of ``TYPICAL_GREY`` moves by this
+        much (grey levels).
+
+    Returns
+    -------
+    np.ndarray
+        (H, W) uint8 mapped image (a new array), or ``img`` itself.
+
+    """
+    ends = np.array(TYPICAL_GREY)
+    if np.max(np.abs(gain * ends + offset - ends)) < min_change:
+        return img
+    levels = np.arange(256, dtype=np.float64)
+    lut = np.clip(np.rint(gain * levels + offset), 0, 255).astype(np.uint8)
+    return cv2.LUT(img, lut)
+
+
+class PhotometricMatcher:
+    """
+    Cumulative histograms of the images of a pair, cached by identity, and the mapped images.
+
+    One instance per tracked pair: ``matched(reference, img)`` returns ``img`` mapped to the
+    brightness of ``reference`` (or ``img`` itself when they already match). Each image's
+    histogram is computed once; the mapped images are remembered per (reference, image).
+    """
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self._cdfs: list[tuple[np.ndarray, np.ndarray]] = []
+        self._mapped: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        #: (gain, offset) of the last map computed.
+        self.last: tuple[float, float] = (1.0, 0.0)
+
+    def carry(self, pairs: tuple[tuple[np.ndarray, np.ndarray], ...]) -> None:
+        """
+        Start the next pair: keep only the histograms of the images that stay.
+
+        Parameters
+        ----------
+        pairs : tuple
+            ``(image, kept)`` pairs: the histogram of ``image``, if computed, is kept for
+            ``kept`` (the same pixels, possibly a copy); every other entry is forgotten.
+
+        """
+        cdfs = []
+        for img, kept in pairs:
+            for src, cdf in self._cdfs:
+                if src is img:
+                    cdfs.append((kept, cdf))
+                    break
+        self._cdfs = cdfs
+        self._mapped = []
+
+    def cdf(self, img: np.ndarray) -> np.ndarray:
+        """Return the cumulative histogram of an image (cached by identity)."""
+        for src, cdf in self._cdfs:
+            if src is img:
+                return cdf
+        cdf = histogram(img)
+        self._cdfs.append((img, cdf))
+        return cdf
+
+    def matched(self, reference: np.ndarray, img: np.ndarray,
+                pts_reference: np.ndarray | None = None, pts_img: np.ndarray | None = None
+                ) -> np.ndarray:
+        """
+        Return ``img`` mapped to the brightness of ``reference``.
+
+        Parameters
+        ----------
+        reference, img : np.ndarray
+            (H, W) uint8 grey images.
+        pts_reference, pts_img : np.ndarray or None
+            (N, 2) float positions (pixels) of corresponding points in each image (predicted
+            positions suffice): the map comes from their windows (``window_transfer``); without
+            them, or with too few usable windows, from the histograms (``brightness_transfer``).
+
+        Returns
+        -------
+        np.ndarray
+            (H, W) uint8: ``img`` itself when disabled or already matching, else a new image.
+
+        """
+        if not self.enabled or reference is img:
+            return img
+        for ref, src, out in self._mapped:
+            if ref is reference and src is img:
+                return out
+        fit = None
+        if pts_reference is not None and pts_img is not None:
+            fit = window_transfer(img, pts_img, reference, pts_reference)
+        if fit is None:
+            fit = brightness_transfer(self.cdf(img), self.cdf(reference))
+        gain, offset = fit
+        self.last = (gain, offset)
+        out = apply_transfer(img, gain, offset)
+        self._mapped.append((reference, img, out))
+        return out
