@@ -582,9 +582,11 @@ def test_left_and_right_never_within_the_slop(make_rig, sync, offset_ms, rule):
         f = rig.frames[i]
         rig.send(f.left, f.right, rig.stamp(i), rig.stamp(i) + offset_ms * 1_000_000)
     rig.wait_count('unsynchronized_inputs', 3)
-    problem = f'dropped without a partner: left and right stamps are not {rule}'
-    rig.assert_diagnosed(problem, DiagnosticStatus.WARN)  # first: the WARN holds 5 s
+    problem = 'without their partner'
+    why = f'the left and right stamps are not {rule}'
+    rig.assert_diagnosed(why, DiagnosticStatus.WARN)  # first: the WARN holds 5 s
     rig.assert_logged(problem, WARN)
+    rig.assert_logged(why, WARN)
     assert rig.diag().message.startswith('no synchronized stereo pair received yet')
     assert rig.count('pairs_received') == 0 and rig.odom.count == 0
     rig.recover(5)
@@ -629,16 +631,15 @@ def test_absurd_set_pose_never_publishes_non_finite_odometry(make_rig):
 
 
 # -- load ----------------------------------------------------------------------------------
-def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(make_rig):
+def test_input_at_three_times_the_processing_rate_drops_newest_wins_no_queue(make_rig):
     """
     Flood the node at three times the rate its processing allows: drops, no queue.
 
     The publisher shares this process (and the GIL) with the composed node, so the flood also
     slows the node's executor down; the end-to-end latency under a real overload, node in its
     own process, is measured by ``benchmarks/bench_node_latency.py``. What is asserted here is
-    the design: pairs are dropped and counted, the node's own latency (arrival to publish)
-    stays about one processing time, and after the flood only a handful of pairs come out, the
-    newest last: nothing queued up.
+    the design: pairs are dropped and counted, and after the flood only a handful of pairs come
+    out, the newest last: nothing queued up.
     """
     rig = make_rig()
     rig.camera_info()
@@ -684,15 +685,9 @@ def test_input_at_three_times_the_processing_rate_drops_with_bounded_latency(mak
     assert dropped > 0 and k > len(arrivals), rig.status()
     assert rig.count('pairs_processed') == received - dropped  # every other one
     assert len(arrivals) >= 3, (len(arrivals), k, period_s)  # still processing while flooded
-    # The node's own latency (arrival -> published) stays about one processing time: the one
-    # of the flood, which shares this process' GIL with the publisher and the executor (one
-    # run of 2026-11-23 took 260 ms a pair instead of 13 ms, and 973 ms of latency; one of
-    # 2026-11-25 620 ms at 17 ms a pair). A queue would grow with the flood instead, to seconds
-    # (late <= 6 above checks that directly), so the bound is a fifth of the flood's duration
-    # (at least 1 s), not a fixed time that asserts the machine's load.
-    flooded_s = float(rig.value('processing_ms')) * 1e-3
-    bound_s = max(10 * period_s, 4 * flooded_s, 0.2 * (flood_end - start))
-    assert float(rig.value('latency_ms')) < bound_s * 1e3, rig.status()
+    # How long the node takes under the flood is the benchmark's to measure
+    # (benchmarks/bench_node_latency.py, node in its own process): here the flooding publisher
+    # shares the GIL with the node, and any time bound would assert the machine's load.
     rig.assert_logged('stereo pair dropped: pairs arrive faster than they are processed', WARN)
     assert watch.problems == []
     rig.assert_healthy()
@@ -704,8 +699,14 @@ def _rss_bytes() -> int:
 
 
 def test_long_run_memory_flat_and_path_bounded(harness):
-    """Many small frames (forwards, then backwards: no jump) through the node."""
-    n_pairs, path_max = 1000, 50
+    """
+    Many small frames (forwards, then backwards: no jump) through the node.
+
+    The short version of ``benchmarks/bench_long_run.py`` (20,000 pairs, memory growth per
+    1,000 pairs): 300 pairs, six times the path's bound, with Python's allocations traced over
+    the second half.
+    """
+    n_pairs, path_max = 300, 50
     spec = SequenceSpec.preset('demo', n_frames=60, width=320, height=96, turns=False,
                                start_time_s=100.0)
     rig = Rig(harness, (spec, list(render_sequence(spec))),

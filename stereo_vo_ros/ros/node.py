@@ -234,6 +234,8 @@ class StereoVONode(Node):
         self._decode_ms = float('nan')
         self._warned: set[str] = set()
         self._partner_events: collections.deque = collections.deque()  # (wall, side, n)
+        self._stamp_steps: collections.deque = collections.deque(maxlen=20)  # ns, per side
+        self._last_seen_ns: dict[str, int | None] = {'left': None, 'right': None}
         self._image_subs: list = []
         self._image_reliability: ReliabilityPolicy | None = None
         self._image_type = CompressedImage if cfg.image_transport == 'compressed' else Image
@@ -460,10 +462,14 @@ class StereoVONode(Node):
             stats = self._sync.stats
             before = (stats.restarts, stats.late[side], dict(stats.unmatched))
             previous = self._sync.newest(side)
+            seen = self._last_seen_ns[side]
+            if seen is not None and stamp_ns > seen:
+                self._stamp_steps.append(stamp_ns - seen)
+            self._last_seen_ns[side] = stamp_ns
             pairs = self._sync.add(side, stamp_ns, msg)
             stats = self._sync.stats
             after = (stats.restarts, stats.late[side], dict(stats.unmatched))
-            newest = {s: self._sync.newest(s) for s in ('left', 'right')}
+            newest = dict(self._last_seen_ns)
         if after[0] > before[0]:
             self._warn(f'{side} image stamp {stamp_ns * 1e-9:.9f} s is '
                        f'{(previous - stamp_ns) * 1e-9:.3f} s before the previous one: the '
@@ -528,12 +534,16 @@ class StereoVONode(Node):
         cfg = self._config.ros
         stamps = [v for v in newest.values() if v is not None]
         spread = (max(stamps) - min(stamps)) * 1e-9 if len(stamps) == 2 else 0.0
+        period = float(np.median(self._stamp_steps)) * 1e-9 if self._stamp_steps else np.inf
         rule = 'equal (exact sync)' if cfg.sync == 'exact' else \
             f'within {cfg.sync_slop_s} s (approximate sync)'
         what = (f'{loss["left"]} left and {loss["right"]} right images of the last '
                 f'{loss["window_s"]:.0f} s arrived without their partner '
                 f'({loss["share"]:.0%} of the images, {loss["rate_hz"]:.1f} per second)')
-        if loss['left'] and loss['right'] and spread > cfg.sync_slop_s:
+        # Stamps that differ by less than half a frame period belong to one exposure: they
+        # miss the pairing rule. A partner lost in transport leaves a whole period instead.
+        slop = 0.0 if cfg.sync == 'exact' else cfg.sync_slop_s
+        if slop < spread < 0.5 * period:
             why = (f'the left and right stamps are not {rule} (newest differ by '
                    f"{spread:.6f} s): check the cameras' stamps or ros.sync_slop_s")
         else:
