@@ -71,12 +71,15 @@ fi
 VENV="$(cd "$VENV" && pwd)"
 PY="$VENV/bin/python"
 
-for tool in cc c++; do
-    if ! command -v "$tool" > /dev/null; then
-        _tf_log "no C/C++ compiler ('$tool'): apt-get install -y build-essential"
-        exit 1
+if ! command -v cc > /dev/null || ! command -v c++ > /dev/null; then
+    _tf_log "no C/C++ compiler: installing build-essential with apt-get"
+    sudo_cmd=()
+    if [ "$(id -u)" != 0 ] && command -v sudo > /dev/null; then
+        sudo_cmd=(sudo)
     fi
-done
+    "${sudo_cmd[@]}" apt-get update
+    DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y build-essential
+fi
 
 _tf_log "generating tf2_msgs (TFMessage) into $VENV"
 _tf_pip install "${TF2_MSGS_BUILD_DEPS[@]}"
