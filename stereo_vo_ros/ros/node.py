@@ -235,6 +235,7 @@ class StereoVONode(Node):
         self._warned: set[str] = set()
         self._partner_events: collections.deque = collections.deque()  # (wall, side, n)
         self._stamp_steps: collections.deque = collections.deque(maxlen=20)  # ns, per side
+        self._pair_walls: collections.deque = collections.deque()  # pairs of the last window
         self._last_seen_ns: dict[str, int | None] = {'left': None, 'right': None}
         self._image_subs: list = []
         self._image_reliability: ReliabilityPolicy | None = None
@@ -515,12 +516,13 @@ class StereoVONode(Node):
         now = time.monotonic()
         while self._partner_events and now - self._partner_events[0][0] > PARTNER_WINDOW_S:
             self._partner_events.popleft()
+        while self._pair_walls and now - self._pair_walls[0] > PARTNER_WINDOW_S:
+            self._pair_walls.popleft()
         counts = {'left': 0, 'right': 0}
         for _, side, n in self._partner_events:
             counts[side] += n
         lost = counts['left'] + counts['right']
-        pairs = sum(1 for t in self._arrivals if now - t <= PARTNER_WINDOW_S)
-        received = lost + 2 * pairs
+        received = lost + 2 * len(self._pair_walls)
         return {**counts, 'rate_hz': lost / PARTNER_WINDOW_S,
                 'share': lost / received if received else 0.0, 'window_s': PARTNER_WINDOW_S}
 
@@ -560,6 +562,7 @@ class StereoVONode(Node):
     def _on_pair(self, pair: StereoPair) -> None:
         now = time.monotonic()
         self._arrivals.append(now)
+        self._pair_walls.append(now)
         self._last_pair_wall = now
         self._counts['pairs'] += 1
         with self._slot_lock:
