@@ -143,7 +143,7 @@ class RigEstimate:
     enabled : bool
         ``rig.enabled``.
     last : str
-        What the latest pair did: updated, rejected, frozen, off or none.
+        What the latest pair did: updated, rejected, frozen, skipped, off or none.
 
     """
 

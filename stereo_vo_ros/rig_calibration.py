@@ -61,11 +61,24 @@ LOG = logging.getLogger(__name__)
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
 PARAMETERS = ('roll_rad', 'pitch_rad', 'yaw_rad', 'focal_ratio', 'disparity_offset_px')
 N_PARAMS = len(PARAMETERS)
+#: Consecutive gated-out pairs after which the estimate's covariance is widened by a tenth of
+#: the prior (the rig may have changed, or the estimate went wrong). Many: a vehicle that
+#: moves almost as the camera does can stay among the motion's inliers for seconds, and its
+#: pairs are gated out as long as the estimate holds.
+MAX_REJECTIONS = 100
 #: Chi-square 99.9 % points for 1..5 degrees of freedom (gate of the per-pair measurement).
 CHI2_999 = (10.83, 13.82, 16.27, 18.47, 20.52)
 
 
 # -- the error model ----------------------------------------------------------------------------
+def rotation_zxy(angles: np.ndarray) -> np.ndarray:
+    """``R_z(roll) R_x(pitch) R_y(yaw)`` (3, 3) of angles (roll, pitch, yaw) in rad."""
+    (cz, cx, cy), (sz, sx, sy) = np.cos(angles), np.sin(angles)
+    return np.array([[cz * cy - sz * sx * sy, -sz * cx, cz * sy + sz * sx * cy],
+                     [sz * cy + cz * sx * sy, cz * cx, sz * sy - cz * sx * cy],
+                     [-cx * sy, sx, cx * cy]])
+
+
 def right_homography(K_right: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """
     Homography from calibrated (ideal) right pixels to measured right pixels.
@@ -84,7 +97,7 @@ def right_homography(K_right: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
     """
     theta = np.asarray(theta, np.float64)
-    R = Rotation.from_euler('ZXY', theta[:3]).as_matrix()  # R_z(roll) R_x(pitch) R_y(yaw)
+    R = rotation_zxy(theta[:3])
     K_err = np.array(K_right, np.float64)
     K_err[:2, :2] *= 1.0 + theta[3]
     K_err[0, 2] -= theta[4]
@@ -333,6 +346,11 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
         return None
     pts, z = pts[ok], z[ok]
     mask = np.ones((n, 8)) if used is None else np.asarray(used, np.float64)[ok]
+    import os
+    F = float(os.environ.get('RIG_FLOW_PX', '0'))
+    if F > 0:
+        flow = np.hypot(*(z[:, 4:6] - z[:, 0:2]).T)
+        mask[:, 4:] *= (1.0 / (1.0 + (flow / F) ** 2))[:, None]
     R = np.asarray(T_prev_cur, np.float64)[:3, :3].copy()
     t = np.asarray(T_prev_cur, np.float64)[:3, 3].copy()
     n_glob = 6 + N_PARAMS
@@ -370,11 +388,15 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
         J[:, 6:8, 6:9] = _cross_rows(D1r_R, q1l)
         # Robust scale and weights (Huber); the first pass uses unit weights.
         absr = np.abs(res)
-        n_res = int(np.count_nonzero(mask))
-        dof = max(n_res - 3 * n - n_glob, 1)
-        sigma = max(1.4826 * float(np.median(absr[mask > 0])) * np.sqrt(n_res / dof),
-                    cfg.min_sigma_px)
-        if it > 0:
+        if it == 0:  # the previous pair fixed the points: the current views carry the errors
+            sigma = max(1.4826 * float(np.median(absr[:, 4:][mask[:, 4:] > 0])),
+                        cfg.min_sigma_px)
+        else:
+            n_res = int(np.count_nonzero(mask))
+            dof = max(n_res - 3 * n - n_glob, 1)
+            sigma = max(1.4826 * float(np.median(absr[mask > 0])) * np.sqrt(n_res / dof),
+                        cfg.min_sigma_px)
+        if it > 0 or cfg.iterations == 0:
             keep = np.max(absr, axis=1) < cfg.outlier_sigmas * sigma
             if not np.all(keep):
                 pts, z, res, absr, J = pts[keep], z[keep], res[keep], absr[keep], J[keep]
@@ -439,7 +461,7 @@ class RigCalibrator:
         """Covariance (5, 5) of the rig error before any data (diagonal, from the config)."""
         c = self.cfg
         a = np.deg2rad(c.prior_angle_std_deg) ** 2
-        return np.diag([a, a, a, c.prior_focal_ratio_std ** 2,
+        return np.diag([a, a, np.deg2rad(c.prior_yaw_std_deg) ** 2, c.prior_focal_ratio_std ** 2,
                         c.prior_disparity_offset_std_px ** 2])
 
     def reset(self) -> None:
@@ -448,18 +470,27 @@ class RigCalibrator:
         self.cov = self.prior_covariance()
         self.updates = 0
         self.rejected = 0
+        self._streak = 0
+        self._pairs = 0
         self.settled = False
         self.last = 'none'
         self._H_cache: tuple | None = None
 
     # -- correction ----------------------------------------------------------------------------
+    def homography(self, calib: StereoCalibration) -> np.ndarray:
+        """(3, 3) map from calibrated to measured right pixels of ``calib`` (the estimate)."""
+        return self._homographies(calib)[0]
+
     def homography_inverse(self, calib: StereoCalibration) -> np.ndarray:
         """(3, 3) map from measured to corrected (calibrated) right pixels of ``calib``."""
+        return self._homographies(calib)[1]
+
+    def _homographies(self, calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
         key = (id(calib), self.theta.tobytes())
         if self._H_cache is None or self._H_cache[0] != key:
-            H_inv = np.linalg.inv(right_homography(calib.K_right, self.theta))
-            self._H_cache = (key, H_inv)
-        return self._H_cache[1]
+            H = right_homography(calib.K_right, self.theta)
+            self._H_cache = (key, H, np.linalg.inv(H))
+        return self._H_cache[1], self._H_cache[2]
 
     def active(self) -> bool:
         """Whether the correction is applied (enabled and away from zero)."""
@@ -489,8 +520,7 @@ class RigCalibrator:
         if not np.any(pinned) or not self.active():
             return right
         right = np.array(right, np.float64)
-        H = right_homography(calib.K_right, self.theta)
-        right[pinned, 1] = apply_homography(H, right[pinned])[:, 1]
+        right[pinned, 1] = apply_homography(self.homography(calib), right[pinned])[:, 1]
         return right
 
     def _correct(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration
@@ -502,7 +532,7 @@ class RigCalibrator:
         """Map calibrated right pixels (N, 2) to where the real right camera sees them."""
         if not self.active() or len(pts) == 0:
             return pts
-        return apply_homography(right_homography(calib.K_right, self.theta), pts)
+        return apply_homography(self.homography(calib), pts)
 
     # -- update --------------------------------------------------------------------------------
     def predict(self, dt: float) -> None:
@@ -542,7 +572,7 @@ class RigCalibrator:
         Returns
         -------
         str: ``updated``, ``rejected`` (gated out), ``frozen`` (standing still, too few
-        inliers, no usable measurement) or ``off``.
+        inliers, no usable measurement), ``skipped`` (``rig.measure_every``) or ``off``.
 
         """
         cfg = self.cfg
@@ -550,6 +580,10 @@ class RigCalibrator:
             self.last = 'off'
             return self.last
         self.predict(dt)
+        self._pairs += 1
+        if self._pairs % cfg.measure_every:
+            self.last = 'skipped'
+            return self.last
         inliers = np.asarray(inliers, bool)
         moved = float(np.linalg.norm(np.asarray(T_prev_cur)[:3, 3]))
         if moved < cfg.min_translation_m or np.count_nonzero(inliers) < cfg.min_points:
@@ -585,15 +619,21 @@ class RigCalibrator:
         self.last = 'updated' if self._fuse(meas) else 'rejected'
         if self.last == 'updated':
             self.updates += 1
+            self._streak = 0
         else:
             self.rejected += 1
+            self._streak += 1
+            if self._streak >= MAX_REJECTIONS:
+                LOG.warning('stereo rig: %d pairs in a row disagree with the estimate; its '
+                            'uncertainty is widened', self._streak)
+                self.cov = self.cov + 0.1 * self.prior_covariance()
+                self._streak = 0
         self._check_settled(calib_cur)
         return self.last
 
     def _fuse(self, meas: PairMeasurement) -> bool:
         """Information-form Kalman update with a 99.9 % gate; returns whether it was fused."""
-        I, g = meas.information, meas.gradient
-        P = self.cov
+        I, g, P = meas.information, meas.gradient, self.cov
         # Gate: the measurement z = I^-1 g has covariance I^-1 + P; in information form the
         # squared distance is g^T (I + I P I)^+ g (works where I is singular).
         M = I + I @ P @ I
@@ -671,7 +711,7 @@ def refined_camera_infos(calib: StereoCalibration, theta: np.ndarray) -> tuple[d
 
     """
     theta = np.asarray(theta, np.float64)
-    R = Rotation.from_euler('ZXY', theta[:3]).as_matrix()
+    R = rotation_zxy(theta[:3])
     out = []
     for cam, K, rot in ((calib.left, calib.K_left, np.eye(3)),
                         (calib.right, calib.K_right, R)):

@@ -27,6 +27,8 @@ DT = 0.1
 #: 0.008 deg and a principal point 0.05 px off (disparity +0.15 px), right focal +0.03 %.
 THETA = np.array([np.deg2rad(0.01), np.deg2rad(0.02), np.deg2rad(0.008), 3e-4, 0.05])
 FORWARD = np.array([0.0, 0.0, 10.0, 0.0, np.deg2rad(1.0), 0.0])
+#: The filter tests measure every pair (the default measures every second one).
+EVERY_PAIR = Config().replace(**{'rig.measure_every': 1})
 
 
 def kitti_calibration():
@@ -115,7 +117,7 @@ def test_jacobian_matches_finite_differences():
 def test_converges_to_a_known_rig_error():
     rng = np.random.default_rng(0)
     calib = kitti_calibration()
-    rig = RigCalibrator(Config().rig)
+    rig = RigCalibrator(EVERY_PAIR.rig)
     statuses = run_filter(rig, calib, THETA, 150, rng)
     assert statuses.count('updated') >= 145
     err, std = offsets_error(rig, calib, THETA)
@@ -133,7 +135,7 @@ def test_converges_to_a_known_rig_error():
 def test_correction_undoes_the_rig_error():
     rng = np.random.default_rng(1)
     calib = kitti_calibration()
-    rig = RigCalibrator(Config().rig)
+    rig = RigCalibrator(EVERY_PAIR.rig)
     rig.theta = THETA.copy()
     T = transform_from_velocity(FORWARD, DT)
     exact = observe(calib, np.zeros(5), scene(rng, 50), T, rng, noise_px=0.0)
@@ -158,17 +160,25 @@ def test_correction_undoes_the_rig_error():
 def test_exact_rig_stays_at_zero():
     rng = np.random.default_rng(2)
     calib = kitti_calibration()
-    rig = RigCalibrator(Config().rig)
+    rig = RigCalibrator(EVERY_PAIR.rig)
     run_filter(rig, calib, np.zeros(5), 100, rng)
     err, std = offsets_error(rig, calib, np.zeros(5))
     assert np.all(np.abs(err) < 3 * std), (err, std)
     assert np.abs(err).max() < 0.01
 
 
+def test_measures_every_second_pair_by_default():
+    rng = np.random.default_rng(7)
+    calib = kitti_calibration()
+    rig = RigCalibrator(Config().rig)
+    statuses = run_filter(rig, calib, THETA, 6, rng)
+    assert statuses == ['skipped', 'updated'] * 3
+
+
 def test_static_camera_freezes_the_estimate():
     rng = np.random.default_rng(3)
     calib = kitti_calibration()
-    rig = RigCalibrator(Config().rig)
+    rig = RigCalibrator(EVERY_PAIR.rig)
     statuses = run_filter(rig, calib, THETA, 20, rng, velocity=np.zeros(6))
     assert set(statuses) == {'frozen'}
     np.testing.assert_array_equal(rig.theta, np.zeros(5))
@@ -179,16 +189,18 @@ def test_static_camera_freezes_the_estimate():
     assert rig.update(corr, np.ones(len(corr), bool), T, DT, calib, calib) == 'frozen'
 
 
-def test_moving_truck_on_half_of_the_points_does_not_move_it():
-    """The estimator's RANSAC inliers keep a truck (second rigid motion) out of the rig."""
+@pytest.mark.parametrize('truck_speed', [-1.0, -5.0])
+def test_moving_truck_on_half_of_the_points_does_not_move_it(truck_speed):
+    """A truck (second rigid motion) is left out by RANSAC or its pairs are gated out."""
     rng = np.random.default_rng(4)
     calib = kitti_calibration()
-    cfg = Config()
+    cfg = EVERY_PAIR
     est, rig = MotionEstimator(cfg), RigCalibrator(cfg.rig)
     T = transform_from_velocity(FORWARD, DT)
-    # The truck drives ahead of the camera, 1 m/s faster, turning slightly: points 8-20 m
-    # ahead in the left half of the image.
-    T_truck = transform_from_velocity(np.array([0.0, 0.0, -1.0, 0.0, 0.02, 0.0]), DT)
+    # The truck drives ahead of the camera, turning slightly: points 8-20 m ahead in the left
+    # half. 1 m/s faster: RANSAC keeps most of its points, the pairs are gated out; 5 m/s
+    # faster: RANSAC leaves it out.
+    T_truck = transform_from_velocity(np.array([0.0, 0.0, truck_speed, 0.0, 0.02, 0.0]), DT)
     truck_seen, n_pairs = [], 40
     for k in range(n_pairs):
         X = scene(rng, 100)
@@ -210,6 +222,7 @@ def test_moving_truck_on_half_of_the_points_does_not_move_it():
         assert res.status is TrackingStatus.OK
         rig.update(corr, res.inliers, res.T_prev_cur, DT, calib, calib)
     assert np.mean(truck_seen) > 0.4
+    assert rig.estimate(calib).updates >= (5 if truck_speed > -2 else n_pairs - 2)
     err, std = offsets_error(rig, calib, np.zeros(5))
     assert np.all(np.abs(err) < 3 * std), (err, std)
     assert np.abs(err).max() < 0.02
