@@ -346,11 +346,6 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
         return None
     pts, z = pts[ok], z[ok]
     mask = np.ones((n, 8)) if used is None else np.asarray(used, np.float64)[ok]
-    import os
-    F = float(os.environ.get('RIG_FLOW_PX', '0'))
-    if F > 0:
-        flow = np.hypot(*(z[:, 4:6] - z[:, 0:2]).T)
-        mask[:, 4:] *= (1.0 / (1.0 + (flow / F) ** 2))[:, None]
     R = np.asarray(T_prev_cur, np.float64)[:3, :3].copy()
     t = np.asarray(T_prev_cur, np.float64)[:3, 3].copy()
     n_glob = 6 + N_PARAMS
