@@ -14,8 +14,8 @@ grey-level map ``I' = gain I + offset`` (a 256-entry lookup table):
   pass from the previous disparity) or known (bi-circular pass: the stored right points)
   positions in the second; ``gain`` is the median ratio of the standard deviations of 21x21
   windows around them (at most 64 windows, every second pixel) and ``offset`` the median
-  difference of their means after the gain, over the textured, unsaturated windows. Medians of
-  window statistics do not need exact positions;
+  difference of their means after the gain, over the textured, unsaturated windows (medians as
+  the mean of the middle half). Robust statistics of windows do not need exact positions;
 * otherwise (first pair, no motion prior) from the grey-level histograms of the two images
   (``brightness_transfer``): their quantiles 5 %, 10 %, ..., 95 % are matched and a line is
   fitted to the pairs, leaving out saturated grey levels;
@@ -29,6 +29,8 @@ compares zero-mean windows scaled to equal contrast, which removes any local gai
 """
 
 from __future__ import annotations
+
+import functools
 
 import cv2
 import numpy as np
@@ -127,7 +129,7 @@ def window_transfer(img_from: np.ndarray, pts_from: np.ndarray, img_to: np.ndarr
     Parameters
     ----------
     img_from, img_to : np.ndarray
-        (H, W) uint8 grey images: the one to be mapped and the reference.
+        (H, W) uint8 grey images of one size: the one to be mapped and the reference.
     pts_from, pts_to : np.ndarray
         (N, 2) float positions (pixels) of the same scene points in each (a prediction is
         enough: window means and contrasts change slowly with the position).
@@ -138,50 +140,57 @@ def window_transfer(img_from: np.ndarray, pts_from: np.ndarray, img_to: np.ndarr
     -------
     tuple of float or None
         ``(gain, offset)`` (unitless, grey levels) with ``gain`` the median ratio of the window
-        standard deviations and ``offset`` the median of ``mean_to - gain * mean_from``, over
-        the windows inside both images, textured (standard deviation above
-        ``MIN_WINDOW_STD_GREY``) and not saturated; None with fewer than ``MIN_WINDOWS``.
+        standard deviations and ``offset`` the median of ``mean_to - gain * mean_from`` (both
+        the mean of the middle half of the sorted values), over the windows inside both
+        images, textured (standard deviation above ``MIN_WINDOW_STD_GREY``) and not
+        saturated; None with fewer than ``MIN_WINDOWS``.
 
     """
-    pts_from = np.asarray(pts_from, np.float64).reshape(-1, 2)
-    pts_to = np.asarray(pts_to, np.float64).reshape(-1, 2)
-    if len(pts_from) > MAX_WINDOWS:
-        pick = np.linspace(0, len(pts_from) - 1, MAX_WINDOWS).astype(np.int64)
-        pts_from, pts_to = pts_from[pick], pts_to[pick]
-    a = _windows(img_from, pts_from, half)
-    b = _windows(img_to, pts_to, half)
-    if a is None or b is None:
+    a = np.asarray(pts_from, np.float64).reshape(-1, 2)
+    b = np.asarray(pts_to, np.float64).reshape(-1, 2)
+    if len(a) > MAX_WINDOWS:
+        pick = np.linspace(0, len(a) - 1, MAX_WINDOWS).astype(np.int64)
+        a, b = a[pick], b[pick]
+    n = len(a)
+    if n < MIN_WINDOWS:
         return None
-    ok = a[2] & b[2] & (a[1] > MIN_WINDOW_STD_GREY) & (b[1] > MIN_WINDOW_STD_GREY)
+    h, w = img_from.shape
+    p = np.concatenate([a, b])
+    ok = np.isfinite(p).all(axis=1)
+    p = np.where(ok[:, None], p, float(half))
+    c = np.rint(p).astype(np.int64)
+    ok &= ((c[:, 0] >= half) & (c[:, 0] < w - half) & (c[:, 1] >= half)
+           & (c[:, 1] < h - half))
+    c[~ok] = half
+    idx = (c[:, 1] * w + c[:, 0])[:, None] + _window_offsets(w, half)
+    win = np.stack([np.take(img_from, idx[:n]), np.take(img_to, idx[n:])])  # (2, n, K)
+    ok = ok[:n] & ok[n:] & (win.max(axis=2) < 255 - SATURATED_GREY).all(axis=0) & (
+        win.min(axis=2) > SATURATED_GREY).all(axis=0)
+    f = win.astype(np.float32)
+    k = np.float32(1.0 / f.shape[2])
+    mean = f.sum(axis=2) * k
+    std = np.sqrt(np.maximum(np.einsum('ink,ink->in', f, f) * k - mean * mean, 0.0))
+    ok &= (std > MIN_WINDOW_STD_GREY).all(axis=0)
     if np.count_nonzero(ok) < MIN_WINDOWS:
         return None
-    gain = float(np.median(b[1][ok] / a[1][ok]))
+    gain = _middle_mean(std[1, ok] / std[0, ok])
     if not GAIN_RANGE[0] <= gain <= GAIN_RANGE[1]:
         return None
-    offset = float(np.median(b[0][ok] - gain * a[0][ok]))
-    return gain, offset
+    return gain, _middle_mean(mean[1, ok] - gain * mean[0, ok])
 
 
-def _windows(img: np.ndarray, pts: np.ndarray, half: int
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Mean, standard deviation and usability (N,) of the windows at the rounded points."""
-    p = np.asarray(pts, np.float64).reshape(-1, 2)
-    if not len(p):
-        return None
-    h, w = img.shape
-    finite = np.all(np.isfinite(p), axis=1)
-    c = np.rint(np.where(finite[:, None], p, 0.0)).astype(np.int64)
-    inside = finite & (c[:, 0] >= half) & (c[:, 0] < w - half) & (c[:, 1] >= half) & (
-        c[:, 1] < h - half)
-    c[~inside] = half
+def _middle_mean(values: np.ndarray) -> float:
+    """Mean of the middle half of the sorted values (a robust, cheap median)."""
+    v = np.sort(values)
+    q = len(v) // 4
+    return float(v[q:len(v) - q].mean())
+
+
+@functools.lru_cache(maxsize=8)
+def _window_offsets(width: int, half: int) -> np.ndarray:
+    """(K,) int64 flat index offsets of a window's samples (every ``WINDOW_STEP_PX``-th)."""
     r = np.arange(-half, half + 1, WINDOW_STEP_PX)
-    offsets = (r[:, None] * w + r[None, :]).ravel()
-    win = np.take(img, (c[:, 1] * w + c[:, 0])[:, None] + offsets)
-    sat = (win.max(axis=1) >= 255 - SATURATED_GREY) | (win.min(axis=1) <= SATURATED_GREY)
-    win = win.astype(np.float32)
-    mean = win.sum(axis=1) / win.shape[1]
-    var = np.einsum('nk,nk->n', win, win) / win.shape[1] - mean * mean
-    return mean, np.sqrt(np.maximum(var, 0.0)), inside & ~sat
+    return (r[:, None] * width + r[None, :]).ravel()
 
 
 def apply_transfer(img: np.ndarray, gain: float, offset: float,

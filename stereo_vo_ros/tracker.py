@@ -70,7 +70,7 @@ DETECTION_OVERSAMPLING = 1.0
 BARREN_BUCKET_FRAMES = 8
 #: Timed stages, keys of ``TrackerStats.timings_ms`` (plus ``total``).
 STAGES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
-          'detection', 'affine')
+          'detection', 'affine', 'photometric')
 #: KLT passes, keys of ``TrackerStats.pass_points``.
 PASSES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
           'new_stereo_fwd', 'new_stereo_bwd')
@@ -653,8 +653,9 @@ class StereoTracker:
         npts['temporal_fwd'] = len(alive)
         # Photometric compensation: every KLT pass sees its second image mapped to the
         # brightness of its first (``photometric``; the images as given when they match).
-        left_m = self._photo.matched(
-            prev_left, left, f.left_raw[alive], None if pred is None else pred[0][alive])
+        left_m, spent = self._matched(
+            prev_left, left, f.left_raw[alive], None if pred is None else pred[0][alive], stats)
+        t += spent
         cur_l = f.left_raw.copy()
         cur_l[alive], ok = lk_pass(prev_left, left_m, f.left_raw[alive],
                                    None if pred is None else pred[0][alive], levels, win, iters)
@@ -680,7 +681,8 @@ class StereoTracker:
             predicted = pred[1][alive] - pred[0][alive]
             offset = np.where(np.isfinite(predicted), predicted, offset)
         npts['stereo_fwd'] = len(alive)
-        right_m = self._photo.matched(left, right, cur_l[alive], cur_l[alive] + offset)
+        right_m, spent = self._matched(left, right, cur_l[alive], cur_l[alive] + offset, stats)
+        t += spent
         cur_r, ok = lk_pass(left, right_m, cur_l[alive], cur_l[alive] + offset,
                             cfg.predicted_pyramid_levels, win, iters)
         failed['stereo'] = int(np.count_nonzero(~ok))
@@ -729,7 +731,9 @@ class StereoTracker:
             npts['bicircular'] = len(alive)
             # Start right(t1) from right(t2) moved back by the measured left flow.
             guess = cur_r + (f.left_raw[alive] - cur_l[alive])
-            prev_right_m = self._photo.matched(right, prev_right, cur_r, f.right_raw[alive])
+            prev_right_m, spent = self._matched(right, prev_right, cur_r, f.right_raw[alive],
+                                                stats)
+            t += spent
             back_r, ok = lk_pass(right, prev_right_m, cur_r, guess,
                                  cfg.predicted_pyramid_levels, win, iters)
             again = None
@@ -755,6 +759,20 @@ class StereoTracker:
                               cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
         self._feats = _Features(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
         return corr, raw
+
+    def _matched(self, reference: np.ndarray, img: np.ndarray, pts_reference: np.ndarray | None,
+                 pts_img: np.ndarray | None, stats: TrackerStats) -> tuple[np.ndarray, float]:
+        """
+        Return ``img`` mapped to the brightness of ``reference`` and the seconds it took.
+
+        The time is added to the ``photometric`` stage; the caller moves the start of its own
+        stage by it, so the stage times do not overlap.
+        """
+        t = CLOCK()
+        out = self._photo.matched(reference, img, pts_reference, pts_img)
+        spent = CLOCK() - t
+        stats.timings_ms['photometric'] += spent * 1e3
+        return out, spent
 
     def _float(self, img: np.ndarray) -> np.ndarray:
         """float32 copy of a uint8 image, converted once per frame (the refinement samples it)."""
@@ -825,7 +843,8 @@ class StereoTracker:
         pr = np.empty_like(pts)
         ok = np.zeros(len(pts), bool)
         stats.pass_points['new_stereo_fwd'] = len(pts)
-        right_m = self._photo.matched(left, right)
+        right_m, spent = self._matched(left, right, None, None, stats)
+        t += spent
         for sel, levels in ((guided, cfg.predicted_pyramid_levels),
                             (~guided, cfg.pyramid_levels)):
             if sel.any():
