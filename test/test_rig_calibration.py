@@ -243,9 +243,9 @@ def test_measure_rows_finds_a_vertical_offset():
 
 def test_pipeline_without_the_rig_behaves_as_before():
     """Off: no rig in the results; on but frozen (theta 0): the same poses as off."""
-    spec = SequenceSpec.preset('demo', n_frames=6, moving_objects=0)
+    spec = SequenceSpec.preset('demo', n_frames=4, moving_objects=0)
     renderer = StereoRenderer(spec)
-    frames = [renderer.render(i).stereo_frame(spec.calibration()) for i in range(6)]
+    frames = [renderer.render(i).stereo_frame(spec.calibration()) for i in range(4)]
     off = StereoOdometry(Config().replace(**{'rig.enabled': False}))
     frozen = StereoOdometry(Config().replace(**{'rig.min_translation_m': 100.0}))
     for f in frames:
@@ -292,3 +292,22 @@ def test_run_writes_the_estimate_and_the_refined_calibration(tmp_path):
     doc = yaml.safe_load(out.read_text())
     assert doc['left']['image_width'] == spec.width
     assert len(doc['right']['projection_matrix']['data']) == 12
+
+
+def test_converges_on_raw_input():
+    """Raw input: the error is estimated in the right camera's own ideal pixels."""
+    rng = np.random.default_rng(8)
+    K = np.array([[700.0, 0.0, 610.0], [0.0, 700.0, 190.0], [0.0, 0.0, 1.0]])
+    R_left = Rotation.from_euler('xyz', [0.3, -0.8, 0.2], degrees=True).as_matrix()
+    R_right = Rotation.from_euler('xyz', [-0.2, 0.5, -0.1], degrees=True).as_matrix()
+    P0 = np.hstack([K, np.zeros((3, 1))])
+    P1 = P0.copy()
+    P1[0, 3] = -700.0 * BASELINE
+    info = [{'k': K.ravel(), 'd': np.zeros(5), 'r': R.ravel(), 'p': P.ravel(), 'width': W,
+             'height': H} for R, P in ((R_left, P0), (R_right, P1))]
+    calib = StereoCalibration.from_camera_info(*info, kind='raw')
+    assert not np.allclose(calib.R_right_left, np.eye(3))
+    rig = RigCalibrator(EVERY_PAIR.rig)
+    run_filter(rig, calib, THETA, 120, rng)
+    err, std = offsets_error(rig, calib, THETA)
+    assert np.abs(err).max() < 0.02, (err, std)
