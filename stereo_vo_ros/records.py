@@ -144,6 +144,9 @@ class RigEstimate:
         ``rig.enabled``.
     last : str
         What the latest pair did: updated, rejected, frozen, skipped, off or none.
+    applied : np.ndarray
+        (5,) float64 the part of ``theta`` that corrects the measurements (zero until a part
+        differs from zero significantly, ``rig.apply_probability``).
 
     """
 
@@ -158,6 +161,7 @@ class RigEstimate:
     settled: bool = False
     enabled: bool = True
     last: str = 'none'
+    applied: np.ndarray = field(default_factory=lambda: np.zeros(5))
 
     def as_dict(self) -> dict:
         """Plain JSON-ready form (angles in degrees, focal ratio in percent)."""
@@ -165,6 +169,7 @@ class RigEstimate:
         deg, dstd = np.rad2deg(self.theta[:3]), np.rad2deg(std[:3])
         return {
             'enabled': self.enabled, 'settled': self.settled, 'updates': self.updates,
+            'applied': [float(v) for v in self.applied],
             'rejected': self.rejected, 'last': self.last,
             'row_offset_px': self.row_offset_px, 'row_offset_std_px': self.row_offset_std_px,
             'disparity_offset_px': self.disparity_offset_px,

@@ -135,7 +135,7 @@ def test_converges_to_a_known_rig_error():
 def test_correction_undoes_the_rig_error():
     rng = np.random.default_rng(1)
     calib = kitti_calibration()
-    rig = RigCalibrator(EVERY_PAIR.rig)
+    rig = RigCalibrator(Config().replace(**{'rig.apply_probability': 0.0}).rig)
     rig.theta = THETA.copy()
     T = transform_from_velocity(FORWARD, DT)
     exact = observe(calib, np.zeros(5), scene(rng, 50), T, rng, noise_px=0.0)
@@ -165,6 +165,22 @@ def test_exact_rig_stays_at_zero():
     err, std = offsets_error(rig, calib, np.zeros(5))
     assert np.all(np.abs(err) < 3 * std), (err, std)
     assert np.abs(err).max() < 0.01
+
+
+def test_correction_waits_until_the_estimate_is_significant():
+    rng = np.random.default_rng(9)
+    calib = kitti_calibration()
+    rig = RigCalibrator(EVERY_PAIR.rig)
+    rig.theta = 0.1 * THETA  # within the prior: not applied
+    assert not rig.active()
+    rig.reset()
+    run_filter(rig, calib, THETA, 20, rng)
+    np.testing.assert_array_equal(rig.applied(), rig.theta)
+    rig.reset()
+    run_filter(rig, calib, np.zeros(5), 40, rng)
+    assert not rig.active()  # an exact rig: nothing applied
+    est = rig.estimate(calib)
+    assert est.updates == 40 and not np.any(est.applied)
 
 
 def test_measures_every_second_pair_by_default():
