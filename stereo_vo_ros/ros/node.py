@@ -234,9 +234,9 @@ class StereoVONode(Node):
         self._decode_ms = float('nan')
         self._warned: set[str] = set()
         self._partner_events: collections.deque = collections.deque()  # (wall, side, n)
-        self._stamp_steps: collections.deque = collections.deque(maxlen=20)  # ns, per side
         self._pair_walls: collections.deque = collections.deque()  # pairs of the last window
-        self._last_seen_ns: dict[str, int | None] = {'left': None, 'right': None}
+        #: Recent stamps (ns) of each side: tell a stamp mismatch from a transport loss.
+        self._recent_ns = {side: collections.deque(maxlen=20) for side in ('left', 'right')}
         self._image_subs: list = []
         self._image_reliability: ReliabilityPolicy | None = None
         self._image_type = CompressedImage if cfg.image_transport == 'compressed' else Image
@@ -463,14 +463,11 @@ class StereoVONode(Node):
             stats = self._sync.stats
             before = (stats.restarts, stats.late[side], dict(stats.unmatched))
             previous = self._sync.newest(side)
-            seen = self._last_seen_ns[side]
-            if seen is not None and stamp_ns > seen:
-                self._stamp_steps.append(stamp_ns - seen)
-            self._last_seen_ns[side] = stamp_ns
+            self._recent_ns[side].append(stamp_ns)
             pairs = self._sync.add(side, stamp_ns, msg)
             stats = self._sync.stats
             after = (stats.restarts, stats.late[side], dict(stats.unmatched))
-            newest = dict(self._last_seen_ns)
+            recent = {s: np.array(self._recent_ns[s], np.int64) for s in ('left', 'right')}
         if after[0] > before[0]:
             self._warn(f'{side} image stamp {stamp_ns * 1e-9:.9f} s is '
                        f'{(previous - stamp_ns) * 1e-9:.3f} s before the previous one: the '
@@ -481,7 +478,7 @@ class StereoVONode(Node):
                        'last stereo pair (duplicate or out-of-order stamp)', key='sync-late')
         lost = {s: after[2][s] - before[2][s] for s in ('left', 'right')}
         if any(lost.values()):
-            self._on_unmatched(lost, newest)
+            self._on_unmatched(lost, recent)
         for pair in pairs:
             self._note_arrival_gap(pair)
             self._on_pair(pair)
@@ -526,7 +523,7 @@ class StereoVONode(Node):
         return {**counts, 'rate_hz': lost / PARTNER_WINDOW_S,
                 'share': lost / received if received else 0.0, 'window_s': PARTNER_WINDOW_S}
 
-    def _on_unmatched(self, lost: dict[str, int], newest: dict[str, int | None]) -> None:
+    def _on_unmatched(self, lost: dict[str, int], recent: dict[str, np.ndarray]) -> None:
         """Images dropped without a partner: say what is lost, why, and the fixes (throttled)."""
         now = time.monotonic()
         for side, n in lost.items():
@@ -534,20 +531,25 @@ class StereoVONode(Node):
                 self._partner_events.append((now, side, n))
         loss = self.partner_loss()
         cfg = self._config.ros
-        stamps = [v for v in newest.values() if v is not None]
-        spread = (max(stamps) - min(stamps)) * 1e-9 if len(stamps) == 2 else 0.0
-        period = float(np.median(self._stamp_steps)) * 1e-9 if self._stamp_steps else np.inf
+        # The closest left and right stamps of the last images, and the frame period.
+        left, right = recent['left'], recent['right']
+        gap = float(np.abs(left[:, None] - right[None, :]).min()) * 1e-9 \
+            if left.size and right.size else 0.0
+        steps = np.concatenate([np.diff(np.sort(left)), np.diff(np.sort(right))])
+        steps = steps[steps > 0]
+        period = float(np.median(steps)) * 1e-9 if steps.size else np.inf
         rule = 'equal (exact sync)' if cfg.sync == 'exact' else \
             f'within {cfg.sync_slop_s} s (approximate sync)'
         what = (f'{loss["left"]} left and {loss["right"]} right images of the last '
                 f'{loss["window_s"]:.0f} s arrived without their partner '
                 f'({loss["share"]:.0%} of the images, {loss["rate_hz"]:.1f} per second)')
-        # Stamps that differ by less than half a frame period belong to one exposure: they
-        # miss the pairing rule. A partner lost in transport leaves a whole period instead.
+        # Left and right stamps that are never closer than the rule allows, yet closer than
+        # half a frame period, belong to the same exposures: the stamps miss the pairing rule.
+        # Where pairs do form, the images without partner lost it in transport.
         slop = 0.0 if cfg.sync == 'exact' else cfg.sync_slop_s
-        if slop < spread < 0.5 * period:
-            why = (f'the left and right stamps are not {rule} (newest differ by '
-                   f"{spread:.6f} s): check the cameras' stamps or ros.sync_slop_s")
+        if slop < gap < 0.5 * period:
+            why = (f'the left and right stamps are not {rule} (the closest ones differ by '
+                   f"{gap:.6f} s): check the cameras' stamps or ros.sync_slop_s")
         else:
             missing = 'left' if loss['right'] >= loss['left'] else 'right'
             why = (f'{missing} images are lost in transport. The image subscriptions are '
