@@ -32,10 +32,12 @@ import time
 for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
     os.environ[_var] = '1'  # before NumPy loads its BLAS
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_seeds import parse_seeds  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros import metrics  # noqa: E402
 from stereo_vo_ros.config import Config  # noqa: E402
@@ -48,15 +50,6 @@ from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 KITTI_CLIPS = ('kitti06_f0000-0050', 'kitti01_f0000-0050')
-
-
-def parse_seeds(items: list[str]) -> list[int]:
-    """Seeds from items like ``0-3`` or ``5``."""
-    out: list[int] = []
-    for item in items:
-        lo, _, hi = item.partition('-')
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 def score(frames: list, gt: np.ndarray, short: bool) -> tuple[float, float]:
