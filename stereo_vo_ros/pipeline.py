@@ -123,6 +123,8 @@ class StereoOdometry:
         #: The previous pair prepared for the road alignment, and its road plane.
         self._road_images: RoadImages | None = None
         self._road_plane: RoadPlane | None = None
+        #: The previous pair's left image as tracked (the rig's row coupling of its matches).
+        self._rig_prev_left: np.ndarray | None = None
         self.tracker.reset()
         self.estimator.reset()
 
@@ -179,6 +181,7 @@ class StereoOdometry:
         if prev_stamp is None:
             self._track(frame, None, timings)
             self._road_step(frame, 0.0, False, timings)
+            self._rig_prev_left = self.tracker.previous_left()
             self._commit(stamp, calib, TrackingStatus.INITIALIZING)
             return self._result(stamp, TrackingStatus.INITIALIZING, t_start, timings,
                                 message='first frame: features detected')
@@ -203,17 +206,26 @@ class StereoOdometry:
             est = None
             self.estimator.coast()
         else:
-            corr_rig = self.rig.corrected(corr, prev_calib, calib)
+            tcfg = self.config.tracker
+            coupling = self.rig.couplings(corr, prev_calib, calib, self._rig_prev_left,
+                                          self.tracker.previous_left(),
+                                          tcfg.affine_stereo_win_size_px, tcfg.affine_step_px)
+            corr_rig = self.rig.corrected(corr, prev_calib, calib, coupling)
+            rig_ms = (time.perf_counter() - t0) * 1e3
+            t0 = time.perf_counter()
             est = self.estimator.estimate(corr_rig, prev_calib, dt,
                                           calib_cur=calib if calib_changed else None)
         self._check_velocity_state()
         timings['estimate'] = (time.perf_counter() - t0) * 1e3
+        if est is not None and self.config.rig.enabled:
+            timings['rig'] = rig_ms
         ok = est is not None and est.status is TrackingStatus.OK
         if ok and not calib_changed and self.config.rig.enabled:
             t0 = time.perf_counter()
             self.rig.update(corr, est.inliers, est.T_prev_cur, dt, prev_calib, calib,
-                            self.tracker.last_pair(), self.config.tracker.win_size_px)
-            timings['rig'] = (time.perf_counter() - t0) * 1e3
+                            self.tracker.last_pair(), self.config.tracker.win_size_px,
+                            coupling)
+            timings['rig'] += (time.perf_counter() - t0) * 1e3
         if ok:
             self._lost_time = 0.0
             status = TrackingStatus.OK
@@ -234,6 +246,7 @@ class StereoOdometry:
         vehicle_fused = ok and self._vehicle_step(dt)
         road_fused = self._road_step(frame, dt, ok and not calib_changed, timings)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
+        self._rig_prev_left = self.tracker.previous_left()
         self._commit(stamp, calib, status)
         return self._result(stamp, status, t_start, timings, corr=corr,
                             inliers=est.inliers if est is not None else None,

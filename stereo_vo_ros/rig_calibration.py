@@ -210,6 +210,59 @@ def measure_rows(left_img: np.ndarray, right_img: np.ndarray, left: np.ndarray,
     return np.where(ok[:, None], found, np.nan)
 
 
+def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: int = 1
+                 ) -> np.ndarray:
+    """
+    How far a row-pinned stereo match slides along its row per pixel of row error.
+
+    The tracker's horizontal affine refinement (``affine_klt.refine_affine(horizontal=True)``:
+    shift, x-scale and x-shear of the window, on the left point's row) finds the right point
+    at ``x_true + coupling * (y_true - y_left)`` when the real match lies off that row: an
+    oblique edge shifted down looks shifted sideways. This is its least-squares model, from
+    the gradients of the left window (the template) with the same centring.
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) left image (uint8 or float).
+    pts : np.ndarray
+        (N, 2) left pixels (window centres).
+    win_size_px, step_px : int
+        The refinement's window side and pixel step (``tracker.affine_stereo_win_size_px``,
+        ``tracker.affine_step_px``).
+
+    Returns
+    -------
+    np.ndarray
+        (N,) float64 coupling (pixels of x per pixel of row error); 0 where undefined.
+
+    """
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros(0)
+    half = int(win_size_px) // 2
+    r = np.arange(-half - 1, half + 2)
+    H, W = img.shape
+    cx = np.clip(np.rint(pts[:, 0]).astype(np.intp), half + 1, W - half - 2)
+    cy = np.clip(np.rint(pts[:, 1]).astype(np.intp), half + 1, H - half - 2)
+    patch = np.asarray(img, np.float32)[cy[:, None, None] + r[None, :, None],
+                                        cx[:, None, None] + r[None, None, :]]
+    st = max(int(step_px), 1)
+    gx = (0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2]))[:, ::st, ::st]
+    gy = (0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1]))[:, ::st, ::st]
+    x = r[1:-1][::st].astype(np.float32)
+    n, k = len(pts), gx.shape[1] * gx.shape[2]
+    sd = np.stack([gx * x[None, None, :], gx * x[None, :, None], gx], 1).reshape(n, 3, k)
+    sd = sd - sd.mean(axis=2, keepdims=True)
+    gy = gy.reshape(n, k)
+    gy = gy - gy.mean(axis=1, keepdims=True)
+    hess = (sd @ np.swapaxes(sd, 1, 2)).astype(np.float64)
+    hess += np.eye(3) * (1e-4 * np.trace(hess, axis1=1, axis2=2)[:, None, None] + 1e-6)
+    rhs = (sd @ gy[:, :, None])[:, :, 0].astype(np.float64)
+    out = np.linalg.solve(hess, rhs[:, :, None])[:, 2, 0]
+    return np.where(np.isfinite(out), out, 0.0)
+
+
 # -- one pair's measurement -----------------------------------------------------------------------
 @dataclasses.dataclass
 class PairMeasurement:
@@ -523,36 +576,64 @@ class RigCalibrator:
         return out
 
     def corrected(self, corr: Correspondences, calib_prev: StereoCalibration,
-                  calib_cur: StereoCalibration) -> Correspondences:
+                  calib_cur: StereoCalibration,
+                  coupling: tuple[np.ndarray, np.ndarray] | None = None) -> Correspondences:
         """
         Return the correspondences with both right points mapped by the inverse rig error.
 
         Ideal pixels in, ideal pixels of the calibrated right camera out (new arrays; ids and
         ages shared); the input itself when off or at zero. A right point that the tracker put
         on the row of its left point (``pinned_rows``) is first moved to the row the rig
-        estimate expects, so that only its column is corrected.
+        estimate expects and, with ``coupling`` (``row_coupling`` of its left window, (N,)
+        for the previous and the current pair), back along its row by the slide that the row
+        error caused.
         """
         if not self.active() or len(corr) == 0:
             return corr
-        return Correspondences(corr.prev_left, self._correct(corr.prev_left, corr.prev_right,
-                                                             calib_prev),
-                               corr.cur_left, self._correct(corr.cur_left, corr.cur_right,
-                                                            calib_cur), corr.ids, corr.ages)
+        c_prev, c_cur = (None, None) if coupling is None else coupling
+        return Correspondences(
+            corr.prev_left, self._correct(corr.prev_left, corr.prev_right, calib_prev, c_prev),
+            corr.cur_left, self._correct(corr.cur_left, corr.cur_right, calib_cur, c_cur),
+            corr.ids, corr.ages)
 
-    def _unpinned(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration
-                  ) -> np.ndarray:
+    def couplings(self, corr: Correspondences, calib_prev: StereoCalibration,
+                  calib_cur: StereoCalibration, prev_img: np.ndarray | None,
+                  cur_img: np.ndarray | None, win_size_px: int, step_px: int
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+        """
+        ``row_coupling`` of the pinned matches of both pairs ((N,) each, 0 elsewhere).
+
+        None while no row correction is applied (nothing to undo) or without the images.
+        """
+        if prev_img is None or cur_img is None or not np.any(self.applied()[BLOCKS[0]]):
+            return None
+        out = []
+        for calib, img, left, right in ((calib_prev, prev_img, corr.prev_left, corr.prev_right),
+                                        (calib_cur, cur_img, corr.cur_left, corr.cur_right)):
+            c = np.zeros(len(left))
+            pinned = pinned_rows(calib, left, right)
+            if np.any(pinned):
+                c[pinned] = row_coupling(img, left[pinned], win_size_px, step_px)
+            out.append(c)
+        return out[0], out[1]
+
+    def _unpinned(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
+                  coupling: np.ndarray | None = None) -> np.ndarray:
         """Right points (N, 2) with pinned rows moved to the rows the estimate expects."""
         pinned = pinned_rows(calib, left, right)
         if not np.any(pinned) or not self.active():
             return right
         right = np.array(right, np.float64)
-        right[pinned, 1] = apply_homography(self.homography(calib), right[pinned])[:, 1]
+        row = apply_homography(self.homography(calib), right[pinned])[:, 1]
+        if coupling is not None:
+            right[pinned, 0] -= (row - right[pinned, 1]) * coupling[pinned]
+        right[pinned, 1] = row
         return right
 
-    def _correct(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration
-                 ) -> np.ndarray:
+    def _correct(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
+                 coupling: np.ndarray | None = None) -> np.ndarray:
         return apply_homography(self.homography_inverse(calib),
-                                self._unpinned(left, right, calib))
+                                self._unpinned(left, right, calib, coupling))
 
     def distorted(self, pts: np.ndarray, calib: StereoCalibration) -> np.ndarray:
         """Map calibrated right pixels (N, 2) to where the real right camera sees them."""
@@ -572,7 +653,8 @@ class RigCalibrator:
     def update(self, corr: Correspondences, inliers: np.ndarray, T_prev_cur: np.ndarray,
                dt: float, calib_prev: StereoCalibration, calib_cur: StereoCalibration,
                images: tuple[np.ndarray, np.ndarray] | None = None,
-               win_size_px: int = 13) -> str:
+               win_size_px: int = 13,
+               coupling: tuple[np.ndarray, np.ndarray] | None = None) -> str:
         """
         Measure the rig error on one pair's inliers and fuse it.
 
@@ -594,6 +676,8 @@ class RigCalibrator:
             them those rows are left out (the error is then seen through the columns only).
         win_size_px : int
             KLT window of that row measurement (pixels).
+        coupling : tuple of np.ndarray, optional
+            ``couplings`` of the pair (as for ``corrected``).
 
         Returns
         -------
@@ -616,7 +700,9 @@ class RigCalibrator:
             self.last = 'frozen'
             return self.last
         raw = corr.subset(inliers)
-        sub = self.corrected(raw, calib_prev, calib_cur)
+        if coupling is not None:
+            coupling = (coupling[0][inliers], coupling[1][inliers])
+        sub = self.corrected(raw, calib_prev, calib_cur, coupling)
         used = np.ones((len(raw), 8), bool)
         used[:, 3] = ~pinned_rows(calib_prev, raw.prev_left, raw.prev_right)
         pinned = np.flatnonzero(pinned_rows(calib_cur, raw.cur_left, raw.cur_right))
