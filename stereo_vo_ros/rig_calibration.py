@@ -40,7 +40,15 @@ eliminated (Schur complements) and the information on ``theta`` is fused into a 
 filter (:class:`RigCalibrator`) with a first-order Gauss-Markov process noise (time constant
 ``rig.time_constant_s``), gated, and frozen while the data cannot inform it (standing still,
 too few inliers). The correction is applied to the right-image measurements of the
-correspondences (ideal pixels) before the estimator sees them (:meth:`RigCalibrator.corrected`).
+correspondences (ideal pixels) before the estimator sees them (:meth:`RigCalibrator.corrected`),
+each part (rows: roll, pitch, focal ratio; disparities: yaw, offset) once it differs from zero
+significantly (``rig.apply_probability``).
+
+On rectified input the tracker's affine stereo refinement puts the right point on the left
+point's row (``pinned_rows``): such rows carry no information, so the rows of the inliers are
+measured again (:func:`measure_rows`), and the slide along the row that the row error caused is
+undone (:func:`row_coupling`). A tracker that refined along the rig's epipolar line (the rows
+this estimate expects) and kept its free row would make both unnecessary.
 """
 
 from __future__ import annotations
