@@ -103,7 +103,7 @@ class TrackerConfig:
         'one gain and offset (not in the paper; see photometric.py), fitted to the windows '
         'around the features (predicted positions) or, without them, to the grey-level '
         'histograms: KLT compares squared differences, so independent exposure changes of the '
-        'cameras break it. A map that moves no grey level of 16-240 by 4 or more is not '
+        'cameras break it. A map that moves no grey level of 16-240 by 8 or more is not '
         'applied.', dynamic=True)
     variant: str = _f(
         'full', 'Which checks run: baseline (forward-backward + left-right, VINS-Fusion), '

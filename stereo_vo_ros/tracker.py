@@ -652,9 +652,17 @@ class StereoTracker:
             alive = alive[ok]
         npts['temporal_fwd'] = len(alive)
         # Photometric compensation: every KLT pass sees its second image mapped to the
-        # brightness of its first (``photometric``; the images as given when they match).
-        left_m, spent = self._matched(
-            prev_left, left, f.left_raw[alive], None if pred is None else pred[0][alive], stats)
+        # brightness of its first (``photometric``; the images as given when they match). With
+        # the prior, the windows at the features' positions in the four images give all maps.
+        t_photo = clock()
+        if pred is not None:
+            self._photo.observe((prev_left, left, right, prev_right),
+                                (f.left_raw[alive], pred[0][alive], pred[1][alive],
+                                 f.right_raw[alive]))
+        spent = clock() - t_photo
+        ms['photometric'] += spent * 1e3
+        t += spent
+        left_m, spent = self._matched(prev_left, left, None, None, stats)
         t += spent
         cur_l = f.left_raw.copy()
         cur_l[alive], ok = lk_pass(prev_left, left_m, f.left_raw[alive],

@@ -891,8 +891,8 @@ def exposed(img: np.ndarray, gain: float, offset: float, vignetting: float = 0.0
 EXPOSURES = ((1.0, 0.0), (1.25, -4.0), (0.75, 5.0), (1.2, 3.0))
 
 
-@pytest.mark.parametrize('vignetting', [0.0, 0.3])
-def test_independent_exposure_jumps_of_the_cameras_keep_tracking(vignetting):
+@pytest.mark.parametrize('vignetting, use_prior', [(0.0, False), (0.3, False), (0.3, True)])
+def test_independent_exposure_jumps_of_the_cameras_keep_tracking(vignetting, use_prior):
     """Gains 0.75-1.25, offsets and vignetting differing between cameras: tracks survive."""
     calib = rectified_calib()
     delta = (M2[0] - M1[0], M2[1] - M1[1])
@@ -906,7 +906,8 @@ def test_independent_exposure_jumps_of_the_cameras_keep_tracking(vignetting):
                               ('uncompensated', changed, False)):
         tracker = StereoTracker(config(photometric_compensation=comp), BucketingConfig())
         first = tracker.track(imgs[0], imgs[1], calib)
-        res = tracker.track(imgs[2], imgs[3], calib)
+        res = tracker.track(imgs[2], imgs[3], calib, shift_prior(delta) if use_prior else None)
+        assert res.stats.used_prior == use_prior
         c = res.correspondences
         counts[label] = (first.stats.n_features, len(c))
         if label != 'uncompensated':
