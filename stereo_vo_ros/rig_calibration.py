@@ -54,11 +54,13 @@ this estimate expects) and kept its free row would make both unnecessary.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.special import gammaincinv
 
 from .camera import StereoCalibration
 from .config import RigConfig
@@ -82,10 +84,10 @@ CHI2_999 = (10.83, 13.82, 16.27, 18.47, 20.52)
 
 
 # -- the error model ----------------------------------------------------------------------------
+@functools.lru_cache(maxsize=32)
 def chi2_quantile(probability: float, dof: int) -> float:
-    """Quantile of the chi-square distribution (scipy.stats.chi2.ppf)."""
-    from scipy.stats import chi2
-    return float(chi2.ppf(probability, dof))
+    """Quantile of the chi-square distribution (``scipy.stats.chi2.ppf``, without its import)."""
+    return 2.0 * float(gammaincinv(0.5 * dof, probability))
 
 
 def rotation_zxy(angles: np.ndarray) -> np.ndarray:
@@ -253,8 +255,8 @@ def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: in
     H, W = img.shape
     cx = np.clip(np.rint(pts[:, 0]).astype(np.intp), half + 1, W - half - 2)
     cy = np.clip(np.rint(pts[:, 1]).astype(np.intp), half + 1, H - half - 2)
-    patch = np.asarray(img, np.float32)[cy[:, None, None] + r[None, :, None],
-                                        cx[:, None, None] + r[None, None, :]]
+    patch = np.asarray(img)[cy[:, None, None] + r[None, :, None],
+                            cx[:, None, None] + r[None, None, :]].astype(np.float32)
     st = max(int(step_px), 1)
     gx = (0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2]))[:, ::st, ::st]
     gy = (0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1]))[:, ::st, ::st]
@@ -536,6 +538,9 @@ class RigCalibrator:
         self.updates = 0
         self.rejected = 0
         self._applied = [False] * len(BLOCKS)
+        self._centre: tuple | None = None
+        #: Feature ids (sorted) and row couplings of the last current pair (``couplings``).
+        self._coupling_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._streak = 0
         self._pairs = 0
         self.settled = False
@@ -614,15 +619,28 @@ class RigCalibrator:
         None while no row correction is applied (nothing to undo) or without the images.
         """
         if prev_img is None or cur_img is None or not np.any(self.applied()[BLOCKS[0]]):
+            self._coupling_ids = None
             return None
+        ids = corr.ids if corr.ids.size == len(corr) else None
         out = []
-        for calib, img, left, right in ((calib_prev, prev_img, corr.prev_left, corr.prev_right),
-                                        (calib_cur, cur_img, corr.cur_left, corr.cur_right)):
+        for k, (calib, img, left, right) in enumerate((
+                (calib_prev, prev_img, corr.prev_left, corr.prev_right),
+                (calib_cur, cur_img, corr.cur_left, corr.cur_right))):
             c = np.zeros(len(left))
-            pinned = pinned_rows(calib, left, right)
-            if np.any(pinned):
-                c[pinned] = row_coupling(img, left[pinned], win_size_px, step_px)
+            todo = pinned_rows(calib, left, right)
+            if k == 0 and ids is not None and self._coupling_ids is not None:
+                # The previous pair's windows were measured as the current ones last time.
+                known, cached = self._coupling_ids
+                pos = np.searchsorted(known, ids)
+                hit = (pos < len(known)) & (known[np.minimum(pos, len(known) - 1)] == ids)
+                c[hit] = cached[pos[hit]]
+                todo &= ~hit
+            if np.any(todo):
+                c[todo] = row_coupling(img, left[todo], win_size_px, step_px)
             out.append(c)
+        if ids is not None:
+            order = np.argsort(ids)
+            self._coupling_ids = (ids[order], out[1][order])
         return out[0], out[1]
 
     def _unpinned(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
@@ -795,7 +813,9 @@ class RigCalibrator:
         theta, cov = self.theta.copy(), self.cov.copy()
         row = disp = row_std = disp_std = float('nan')
         if calib is not None:
-            C = offsets_at_centre(calib.K_right)
+            if self._centre is None or self._centre[0] is not calib:
+                self._centre = (calib, offsets_at_centre(calib.K_right))
+            C = self._centre[1]
             off, off_cov = C @ theta, C @ cov @ C.T
             row, disp = float(off[0]), float(off[1])
             row_std, disp_std = (float(np.sqrt(max(v, 0.0))) for v in np.diag(off_cov))
