@@ -539,6 +539,8 @@ class RigCalibrator:
         self.rejected = 0
         self._applied = [False] * len(BLOCKS)
         self._centre: tuple | None = None
+        #: (9, 2, 5) rig Jacobian at the corners, edge middles and centre (``apply_min_px``).
+        self._grid_jacobian: np.ndarray | None = None
         #: Feature ids (sorted) and row couplings of the last current pair (``couplings``).
         self._coupling_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._streak = 0
@@ -583,7 +585,11 @@ class RigCalibrator:
             if not self._applied[k]:
                 P = self.cov[np.ix_(idx, idx)]
                 m2 = float(self.theta[idx] @ np.linalg.solve(P, self.theta[idx]))
-                self._applied[k] = m2 > chi2_quantile(self.cfg.apply_probability, len(idx))
+                big = self._grid_jacobian is None or float(np.abs(
+                    self._grid_jacobian[:, :, idx] @ self.theta[idx]).max()) > \
+                    self.cfg.apply_min_px
+                self._applied[k] = big and m2 > chi2_quantile(self.cfg.apply_probability,
+                                                              len(idx))
             if self._applied[k]:
                 out[idx] = self.theta[idx]
         return out
@@ -798,6 +804,11 @@ class RigCalibrator:
         est = self.estimate(calib)
         settled = max(est.row_offset_std_px, est.disparity_offset_std_px) < \
             self.cfg.settled_std_px
+        if self._grid_jacobian is None:  # corners, edge middles and centre of the image
+            w, h = calib.size
+            grid = np.stack(np.meshgrid([0.0, w / 2.0, w - 1.0], [0.0, h / 2.0, h - 1.0]),
+                            -1).reshape(-1, 2)
+            self._grid_jacobian = rig_jacobian(calib.K_right, grid)
         if settled and not self.settled:
             LOG.info('stereo rig refined after %d pairs: row offset %+.3f +- %.3f px, disparity '
                      'offset %+.3f +- %.3f px (roll %+.4f, pitch %+.4f, yaw %+.4f deg, right '
