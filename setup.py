@@ -39,7 +39,7 @@ setup(
             'ros-jazzy-std-srvs',
             'ros-jazzy-diagnostic-msgs',
         ],
-        'test': ['pytest', 'hypothesis', 'flake8', 'pydocstyle', 'evo'],
+        'test': ['pytest', 'pytest-xdist', 'hypothesis', 'flake8', 'pydocstyle', 'evo'],
     },
     zip_safe=True,
     maintainer='stereo_vo_ros maintainers',

@@ -11,5 +11,7 @@ cd "$REPO"
 # The packaging tests fail instead of skipping when colcon or the installed
 # distribution is missing: this script has just installed both.
 export STEREO_VO_STRICT_PACKAGING=1
-# testpaths = test (setup.cfg): no arguments runs test/, paths narrow it down.
-exec "$PY" -m pytest -q "$@"
+# testpaths = test (setup.cfg): no arguments runs test/, paths narrow it down. The tests run
+# in STEREO_VO_TEST_WORKERS processes (pytest-xdist; default 2, the cores of the CI machine;
+# 0 runs them in this process). Every ROS test picks its own ROS_DOMAIN_ID from its pid.
+exec "$PY" -m pytest -q -n "${STEREO_VO_TEST_WORKERS:-2}" "$@"

@@ -703,10 +703,10 @@ def test_long_run_memory_flat_and_path_bounded(harness):
     Many small frames (forwards, then backwards: no jump) through the node.
 
     The short version of ``benchmarks/bench_long_run.py`` (20,000 pairs, memory growth per
-    1,000 pairs): 300 pairs, six times the path's bound, with Python's allocations traced over
+    1,000 pairs): 200 pairs, four times the path's bound, with Python's allocations traced over
     the second half.
     """
-    n_pairs, path_max = 300, 50
+    n_pairs, path_max = 200, 50
     spec = SequenceSpec.preset('demo', n_frames=60, width=320, height=96, turns=False,
                                start_time_s=100.0)
     rig = Rig(harness, (spec, list(render_sequence(spec))),
