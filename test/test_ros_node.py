@@ -269,6 +269,11 @@ def test_bag_replay_into_node_process_with_sim_time_and_reset(sequence, bag, har
                        for s in sim)
     values = _values(ours[-1].status[0])
     assert values['tracking_state'] == 'ok' and int(values['inliers']) >= 8
+    # The online rig refinement reports its estimate and uncertainty (pixels, finite).
+    assert values['rig_refinement'].split(',')[0] in ('settled', 'converging'), values
+    for key in ('rig_row_offset_px', 'rig_row_offset_std_px', 'rig_disparity_offset_px',
+                'rig_disparity_offset_std_px'):
+        assert np.isfinite(float(values[key])), (key, values)
     # odom -> base_link on /tf (tf2_msgs/TFMessage, as tf2_ros sends it), one per odometry,
     # stamped like it and with its pose.
     assert 'NOT broadcast on /tf' not in proc['output']

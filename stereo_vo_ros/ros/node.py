@@ -75,7 +75,7 @@ from ..config import Config, from_flat
 from ..datasets.compressed import grey_from_compressed
 from ..errors import CalibrationError, ConfigError, ImageError
 from ..pipeline import RESTART_JUMP_S, StereoOdometry
-from ..records import OdometryResult, StereoFrame, TrackingStatus
+from ..records import OdometryResult, RigEstimate, StereoFrame, TrackingStatus
 
 try:  # a ROS install has it; a pip install gets it from scripts/build_tf2_msgs.sh
     from tf2_msgs.msg import TFMessage
@@ -152,6 +152,23 @@ def _reason(exc: ParameterException) -> str:
     """Return the useful part of an rclpy parameter exception, on one line."""
     text = ' '.join(str(exc).split())
     return text.replace('Invalid parameter value ', '').replace('Trying to set parameter ', '')
+
+
+def _rig_values(rig: RigEstimate | None) -> dict[str, Any]:
+    """Diagnostic values of the online rig refinement (``rig.*``; see ``RigEstimate``)."""
+    if rig is None:
+        return {'rig_refinement': 'off'}
+    d = rig.as_dict()
+    return {'rig_refinement': f'{"settled" if rig.settled else "converging"}, last pair '
+                              f'{rig.last}',
+            'rig_row_offset_px': d['row_offset_px'],
+            'rig_row_offset_std_px': d['row_offset_std_px'],
+            'rig_disparity_offset_px': d['disparity_offset_px'],
+            'rig_disparity_offset_std_px': d['disparity_offset_std_px'],
+            'rig_roll_pitch_yaw_deg': [round(d[k], 5)
+                                       for k in ('roll_deg', 'pitch_deg', 'yaw_deg')],
+            'rig_focal_ratio_pct': d['focal_ratio_pct'],
+            'rig_updates': rig.updates, 'rig_rejected': rig.rejected}
 
 
 def _plain(value: Any) -> Any:
@@ -892,6 +909,7 @@ class StereoVONode(Node):
             'calibration': self._calib_summary(),
             'calibration_changes': max(self._counts['calibrations'] - 1, 0),
             'tf_broadcast': self._tf_pub is not None,
+            **_rig_values(res.rig if res is not None else None),
             'path_length': len(self._path),
             'warnings': self._counts['warnings'],
             'last_warning': self._last_warning,
