@@ -29,7 +29,8 @@ unless stated):
    vignetting (``synthetic.PHOTOMETRIC``: gain x U[0.7, 1.3], offset U[-5, 5] grey levels per
    camera and frame, 30 % vignetting), and both; each row also gives t_rel after one scale
    factor fitted to the whole trajectory (``metrics.kitti_odometry_error_scale_aligned``);
-5. paper 2's ablation (Tables I / II style) on the urban render and the KITTI clips: per tracker
+5. Huang et al.'s ablation (Tables I / II style) on the urban render and the KITTI clips: per
+tracker
    variant (and bi-circular mode for ``full``) the accuracy, features and inliers per frame and
    the tracking milliseconds;
 6. diagnostics of where the errors come from: the share of RANSAC inliers on moving vehicles
@@ -69,12 +70,12 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stereo_vo_ros import metrics  # noqa: E402
-from stereo_vo_ros.camera import StereoCalibration  # noqa: E402
 from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
 from stereo_vo_ros.datasets import open_sequence  # noqa: E402
 from stereo_vo_ros.errors import ConfigError  # noqa: E402
-from stereo_vo_ros.motion import TransferModel, velocity_from_transform  # noqa: E402
+from stereo_vo_ros.estimation.camera import StereoCalibration  # noqa: E402
+from stereo_vo_ros.estimation.motion import TransferModel, velocity_from_transform  # noqa: E402
+from stereo_vo_ros.evaluation import metrics  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import StereoFrame, TrackingStatus  # noqa: E402
 from stereo_vo_ros.synthetic import (PHOTOMETRIC, RIG_ERROR, SequenceSpec,  # noqa: E402
@@ -111,7 +112,7 @@ DEGRADATIONS = {
 #: Calibration error of the ``wrong calib`` row: focal factor, baseline factor, pp shift (px).
 CALIB_ERROR = (1.005, 1.01, 2.0)
 #: Ablation rows: (variant, bicircular_mode or None for the default, departures switched off).
-#: The last three rows switch off this package's two departures from paper 2's tracker (the
+#: The last three rows switch off this package's two departures from Huang et al.'s tracker (the
 #: affine refinement of every match and the aperture check); "neither" is the paper's tracker.
 NO_AFFINE = {'tracker.affine_refinement': False}
 NO_APERTURE = {'tracker.min_eigen_ratio': 0.0, 'tracker.min_flow_edge_ratio': 0.0,
@@ -557,11 +558,11 @@ def table_degradations(base: SequenceSpec, cache: dict, runner: Runner) -> dict:
 
 
 def table_ablation(clips: list, runner: Runner) -> dict:
-    """Table 5: paper 2's ablation per tracker variant on the urban render and KITTI clips."""
-    print('\n== 5. Tracker ablation (paper 2, Tables I/II style): default configuration but '
+    """Table 5: Huang et al.'s ablation per tracker variant on the urban render and KITTI clips."""
+    print('\n== 5. Tracker ablation (Huang et al., Tables I/II style): default configuration but '
           'tracker.variant (and bicircular_mode; off: the departures from the paper switched '
-          "off, affine refinement and aperture check; neither = paper 2's tracker); feat/inl: "
-          'per frame; inl %: inliers / '
+          "off, affine refinement and aperture check; neither = Huang et al.'s tracker); "
+          'feat/inl: per frame; inl %: inliers / '
           f'features; bad%: inliers > {BAD_INLIER_PX:.0f} px from their true-motion transfer; '
           'track ms: median wall time of the tracker; cpu ms: median thread CPU time of the '
           'whole process() ==')

@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
 """
-Time per frame of the egomotion estimator (paper 1) for several numbers of correspondences.
+Time per frame of the egomotion estimator (Kitt et al.) for several numbers of correspondences.
 
-Runs :class:`stereo_vo_ros.estimator.MotionEstimator` (bucketing, RANSAC, final ISPKF update)
-on simulated sequences (:mod:`stereo_vo_ros.simulation`, 0.7 px noise, 20 % outliers by
-default) with N = 40, 200 and 500 correspondences per frame pair, with and without RANSAC, in
-a single thread. Every configuration is repeated; the table gives the median over repeats of
-the per-frame median and 95th percentile (ms), the mean number of correspondences left after
-bucketing (the default grid keeps at most 12 x 4 x 6 = 288) and the mean filter iterations.
+Runs :class:`stereo_vo_ros.estimation.estimator.MotionEstimator` (bucketing, RANSAC, final ISPKF
+update) on simulated sequences (:mod:`stereo_vo_ros.synthetic.simulation`, 0.7 px noise, 20 %
+outliers by default) with N = 40, 200 and 500 correspondences per frame pair, with and without
+RANSAC, in a single thread. Every configuration is repeated; the table gives the median over
+repeats of the per-frame median and 95th percentile (ms), the mean number of correspondences left
+after bucketing (the default grid keeps at most 12 x 4 x 6 = 288) and the mean filter iterations.
 
 Usage::
 
@@ -28,10 +28,10 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
 
-from stereo_vo_ros import bucketing  # noqa: E402
-from stereo_vo_ros.correspondence_io import iter_estimates  # noqa: E402
-from stereo_vo_ros.simulation import paper_config, simulate_sequence, \
-    SimulationSpec  # noqa: E402
+from stereo_vo_ros.datasets.correspondences import iter_estimates  # noqa: E402
+from stereo_vo_ros.synthetic.simulation import (  # noqa: E402
+    paper_config, simulate_sequence, SimulationSpec)
+from stereo_vo_ros.tracking import bucketing  # noqa: E402
 
 TARGET_MS = 3.0  #: issue target: estimator plus RANSAC for N = 200
 

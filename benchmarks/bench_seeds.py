@@ -44,7 +44,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros import config as config_mod  # noqa: E402
-from stereo_vo_ros import metrics  # noqa: E402
+from stereo_vo_ros.evaluation import metrics  # noqa: E402
 from stereo_vo_ros.offline import run_frames  # noqa: E402
 from stereo_vo_ros.records import StereoFrame  # noqa: E402
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer  # noqa: E402

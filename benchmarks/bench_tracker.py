@@ -1,5 +1,5 @@
 """
-Benchmark of the stereo KLT tracker (paper 2) on the KITTI clips: timings and ablation.
+Benchmark of the stereo KLT tracker (Huang et al.) on the KITTI clips: timings and ablation.
 
 Prints, for every clip in the data folder (KITTI-odometry layout):
 
@@ -41,11 +41,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stereo_vo_ros import tracker as tracker_module  # noqa: E402
-from stereo_vo_ros.camera import StereoCalibration  # noqa: E402
 from stereo_vo_ros.config import BucketingConfig, TrackerConfig  # noqa: E402
-from stereo_vo_ros.klt_checks import lk_pass, round_trip_error  # noqa: E402
-from stereo_vo_ros.tracker import STAGES, StereoTracker  # noqa: E402
+from stereo_vo_ros.estimation.camera import StereoCalibration  # noqa: E402
+from stereo_vo_ros.tracking import tracker as tracker_module  # noqa: E402
+from stereo_vo_ros.tracking.klt_checks import lk_pass, round_trip_error  # noqa: E402
+from stereo_vo_ros.tracking.tracker import STAGES, StereoTracker  # noqa: E402
 
 CHECK_KEYS = ('temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr', 'bc')
 

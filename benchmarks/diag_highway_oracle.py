@@ -49,9 +49,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stereo_vo_ros import metrics  # noqa: E402
 from stereo_vo_ros.config import Config  # noqa: E402
-from stereo_vo_ros.motion import TransferModel, velocity_from_transform  # noqa: E402
+from stereo_vo_ros.estimation.motion import TransferModel, velocity_from_transform  # noqa: E402
+from stereo_vo_ros.evaluation import metrics  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import Correspondences  # noqa: E402
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer  # noqa: E402

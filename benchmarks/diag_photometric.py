@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from stereo_vo_ros import config as config_mod  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer  # noqa: E402
-from stereo_vo_ros.tracker import CHECKS  # noqa: E402
+from stereo_vo_ros.tracking.tracker import CHECKS  # noqa: E402
 
 PHOTOMETRIC_FIELDS = ('gain_jitter', 'gain_offset_jitter', 'vignetting', 'vignetting_mismatch',
                       'exposure_change', 'stereo_gain_mismatch')

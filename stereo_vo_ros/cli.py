@@ -58,7 +58,7 @@ def _finite_or_null(data):
 
 
 def _write_poses(path: Path, stamps: np.ndarray, poses: np.ndarray, fmt: str) -> None:
-    from .trajectory import write_kitti, write_tum
+    from .evaluation.trajectory import write_kitti, write_tum
     path.parent.mkdir(parents=True, exist_ok=True)
     if fmt == 'tum':
         write_tum(path, stamps, poses)
@@ -112,7 +112,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _save_calibration(path: Path, out) -> None:
     """Write the calibration refined by the run's rig estimate (camera_info YAML)."""
-    from .rig_calibration import camera_info_yaml, refined_camera_infos
+    from .estimation.rig_calibration import camera_info_yaml, refined_camera_infos
     if out.rig is None or out.calibration is None:
         raise StereoVOError('--save-calibration needs the rig refinement (rig.enabled: true) '
                             'and at least one frame')
@@ -125,8 +125,8 @@ def _save_calibration(path: Path, out) -> None:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Run the estimator on correspondences from an .npz file."""
-    from .correspondence_io import estimate_trajectory, load_npz
-    from .trajectory import write_kitti
+    from .datasets.correspondences import estimate_trajectory, load_npz
+    from .evaluation.trajectory import write_kitti
     poses = estimate_trajectory(load_npz(args.correspondences), _config(args))
     Path(args.poses).parent.mkdir(parents=True, exist_ok=True)
     write_kitti(args.poses, poses)
@@ -135,8 +135,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """Paper 1's simulation (sections IV-A to IV-C); prints JSON."""
-    from .simulation import run_simulation, SimulationSpec
+    """Kitt et al.'s simulation (sections IV-A to IV-C); prints JSON."""
+    from .synthetic.simulation import run_simulation, SimulationSpec
     cfg = _config(args).replace(**{
         'filter.type': args.filter, 'ransac.enabled': not args.no_ransac,
         'filter.pixel_noise_px': max(args.noise, 0.05),
@@ -151,8 +151,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """Score an estimated trajectory against ground truth."""
-    from .metrics import evaluate
-    from .trajectory import read_poses
+    from .evaluation.metrics import evaluate
+    from .evaluation.trajectory import read_poses
     gt = read_poses(args.gt).poses
     est = read_poses(args.est).poses
     if len(gt) != len(est):
@@ -171,8 +171,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """Plot a trajectory (and ground truth, timings) into a PNG."""
-    from .plotting import save_report
-    from .trajectory import read_poses
+    from .evaluation.plotting import save_report
+    from .evaluation.trajectory import read_poses
     est = read_poses(args.est).poses
     gt = read_poses(args.gt).poses if args.gt else None
     if gt is not None and len(gt) != len(est):
@@ -246,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_config(sp)
     sp.set_defaults(func=cmd_estimate)
 
-    sp = sub.add_parser('simulate', help="paper 1's simulation; prints JSON")
+    sp = sub.add_parser('simulate', help="Kitt et al.'s simulation; prints JSON")
     sp.add_argument('--filter', choices=('ispkf', 'iekf', 'ukf', 'ekf'), default='ispkf')
     sp.add_argument('--frames', type=int, default=2000)
     sp.add_argument('--points', type=int, default=40)

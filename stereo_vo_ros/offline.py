@@ -12,8 +12,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .camera import StereoCalibration
 from .config import Config
+from .estimation.camera import StereoCalibration
 from .pipeline import StereoOdometry
 from .records import OdometryResult, RigEstimate, StereoFrame, TrackingStatus
 

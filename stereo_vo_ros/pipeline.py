@@ -3,7 +3,7 @@ The images-to-odometry pipeline: one object, one call per stereo pair.
 
 ``StereoOdometry(config).process(frame) -> OdometryResult`` runs
 
-    tracker (paper 2) -> rig correction -> bucketing -> RANSAC + ISPKF (paper 1) -> rig
+    tracker (Huang et al.) -> rig correction -> bucketing -> RANSAC + ISPKF (Kitt et al.) -> rig
     refinement -> rolling-vehicle prior (fused) -> road alignment (fused) -> pose integration
 
 and handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
@@ -22,17 +22,17 @@ import time
 
 import numpy as np
 
-from .camera import StereoCalibration
 from .config import Config
 from .errors import ImageError
-from .estimator import MotionEstimator
-from .ground_plane import fit_ground_plane, road_speed, triangulate
-from .motion import rotation_from_rates, TransferModel, transform_from_velocity
+from .estimation.camera import StereoCalibration
+from .estimation.estimator import MotionEstimator
+from .estimation.motion import rotation_from_rates, TransferModel, transform_from_velocity
+from .estimation.rig_calibration import apply_homography, RigCalibrator
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
-from .rig_calibration import apply_homography, RigCalibrator
-from .road_alignment import RoadAligner, RoadImages, RoadPlane
-from .tracker import StereoTracker
-from .vehicle_motion import lateral_constraint
+from .road.ground_plane import fit_ground_plane, road_speed, triangulate
+from .road.road_alignment import RoadAligner, RoadImages, RoadPlane
+from .road.vehicle_motion import lateral_constraint
+from .tracking.tracker import StereoTracker
 
 LOG = logging.getLogger(__name__)
 
@@ -276,7 +276,7 @@ class StereoOdometry:
 
     def _vehicle_step(self, dt: float) -> bool:
         """
-        Fuse the rolling-vehicle prior (``vehicle``, :mod:`~stereo_vo_ros.vehicle_motion`).
+        Fuse the rolling-vehicle prior (``vehicle``, :mod:`~stereo_vo_ros.road.vehicle_motion`).
 
         A Kalman update with the pseudo-measurement ``0 = c(y)``, linearised at the features'
         estimate, standard deviation ``vehicle.lateral_speed_std``. Returns whether it was fused.
@@ -292,7 +292,7 @@ class StereoOdometry:
     def _road_step(self, frame: StereoFrame, dt: float, measure: bool,
                    timings: dict[str, float]) -> bool:
         """
-        Road alignment (``road``, :mod:`~stereo_vo_ros.road_alignment`; not in the papers).
+        Road alignment (``road``, :mod:`~stereo_vo_ros.road.road_alignment`; not in the papers).
 
         With ``measure`` (the features gave an estimate, same calibration) the road of the
         previous left image is aligned with the current one, starting from the filter's motion,

@@ -7,7 +7,7 @@ Frames and units used throughout the package:
 * ``world``: the optical frame of the FIRST left camera of a run (KITTI convention);
 * ``T_a_b``: 4x4 homogeneous transform taking points from frame ``b`` to frame ``a``;
 * velocities (V_X, V_Y, V_Z, w_X, w_Y, w_Z) are in m/s and rad/s, expressed in the previous left
-  camera frame (paper 1's state, with the previous LEFT camera as reference).
+  camera frame (Kitt et al.'s state, with the previous LEFT camera as reference).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .camera import StereoCalibration
+    from .estimation.camera import StereoCalibration
 
 
 class TrackingStatus(enum.Enum):
@@ -84,7 +84,7 @@ class Correspondences:
 @dataclass
 class MotionEstimate:
     """
-    Frame-to-frame egomotion from the estimator (paper 1).
+    Frame-to-frame egomotion from the estimator (Kitt et al.).
 
     Attributes
     ----------
@@ -120,7 +120,7 @@ class MotionEstimate:
 @dataclass
 class RigEstimate:
     """
-    Online estimate of the stereo rig's error (:mod:`~stereo_vo_ros.rig_calibration`).
+    Online estimate of the stereo rig's error (:mod:`~stereo_vo_ros.estimation.rig_calibration`).
 
     Attributes
     ----------

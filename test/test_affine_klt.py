@@ -1,5 +1,5 @@
 """
-Tests of the affine refinement of KLT matches (``stereo_vo_ros.affine_klt``) with real OpenCV.
+Tests of the affine refinement of KLT matches (``tracking/affine_klt.py``) with real OpenCV.
 
 The images are an analytic texture (a sum of random sinusoids) seen through exact affine maps,
 so the true match of every point is known to machine precision.
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stereo_vo_ros.affine_klt import refine_affine
-from stereo_vo_ros.klt_checks import lk_pass
+from stereo_vo_ros.tracking.affine_klt import refine_affine
+from stereo_vo_ros.tracking.klt_checks import lk_pass
 
 W, H = 360, 240
 

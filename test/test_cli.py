@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from stereo_vo_ros import cli
 from stereo_vo_ros.datasets import write_kitti, write_stereo_bag
+from stereo_vo_ros.evaluation.trajectory import read_kitti, read_tum
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
-from stereo_vo_ros.trajectory import read_kitti, read_tum
 import yaml
 
 N_FRAMES = 12

@@ -64,8 +64,8 @@ def module_name(path: Path) -> str:
     Returns
     -------
     str
-        For example ``stereo_vo_ros.camera`` or ``stereo_vo_ros.datasets`` for a package's
-        ``__init__.py``.
+        For example ``stereo_vo_ros.estimation.camera`` or ``stereo_vo_ros.datasets`` for a
+        package's ``__init__.py``.
 
     """
     parts = ('stereo_vo_ros',) + path.relative_to(PACKAGE_DIR).with_suffix('').parts
@@ -140,10 +140,10 @@ print(json.dumps(report))
 def test_core_modules_are_found() -> None:
     """The glob finds the modules the package is known to have, and skips the non-core ones."""
     names = {module_name(p) for p in core_files()}
-    assert {'stereo_vo_ros', 'stereo_vo_ros.config', 'stereo_vo_ros.camera',
+    assert {'stereo_vo_ros', 'stereo_vo_ros.config', 'stereo_vo_ros.estimation.camera',
             'stereo_vo_ros.records', 'stereo_vo_ros.errors'} <= names
     assert not any(n.startswith('stereo_vo_ros.ros') for n in names)
-    assert 'stereo_vo_ros.plotting' not in names
+    assert 'stereo_vo_ros.evaluation.plotting' not in names
     assert 'stereo_vo_ros.cli' not in names
 
 

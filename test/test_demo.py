@@ -7,8 +7,8 @@ import pytest
 
 pytest.importorskip('rclpy', reason='the demo needs rclpy (pip install ".[ros]")')
 
+from stereo_vo_ros.evaluation.trajectory import read_poses  # noqa: E402
 from stereo_vo_ros.ros.demo import run_demo  # noqa: E402
-from stereo_vo_ros.trajectory import read_poses  # noqa: E402
 
 
 def test_demo_end_to_end(tmp_path):

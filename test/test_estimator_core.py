@@ -1,22 +1,24 @@
-"""Paper 1 core: trifocal transfer, Euler convention, filters, RANSAC, calibration."""
+"""Kitt et al. core: trifocal transfer, Euler convention, filters, RANSAC, calibration."""
 
 import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.errors import CalibrationError
-from stereo_vo_ros.estimator import adaptive_gate, COAST_VARIANCE_CAP, epipolar_corrected, \
-    MotionEstimator
-from stereo_vo_ros.filters import make_filter
-from stereo_vo_ros.motion import rates_from_rotation, rotation_from_rates, TransferModel, \
-    transform_from_velocity, velocity_from_transform
-from stereo_vo_ros.ransac import BatchedMeasurement, num_samples
+from stereo_vo_ros.estimation.camera import StereoCalibration
+from stereo_vo_ros.estimation.estimator import (adaptive_gate, COAST_VARIANCE_CAP,
+                                                epipolar_corrected, MotionEstimator)
+from stereo_vo_ros.estimation.filters import make_filter
+from stereo_vo_ros.estimation.motion import (rates_from_rotation, rotation_from_rates,
+                                             TransferModel, transform_from_velocity,
+                                             velocity_from_transform)
+from stereo_vo_ros.estimation.ransac import BatchedMeasurement, num_samples
+from stereo_vo_ros.estimation.trifocal import (fundamental_from_projections, perpendicular_lines,
+                                               tensor_basis, transfer_basis, transfer_points,
+                                               trifocal_tensor)
 from stereo_vo_ros.records import Correspondences, TrackingStatus
-from stereo_vo_ros.trifocal import fundamental_from_projections, perpendicular_lines, \
-    tensor_basis, transfer_basis, transfer_points, trifocal_tensor
 
 FX, CX, CY, BASELINE = 718.856, 607.19, 185.22, 0.537
 
@@ -169,7 +171,7 @@ def test_ransac_recovers_motion_with_half_outliers(filter_type):
     np.testing.assert_allclose(res.velocity[3:], y[3:], atol=2e-3)
     assert not np.any(res.inliers & outlier)
     assert np.count_nonzero(res.inliers & ~outlier) > 0.9 * np.count_nonzero(~outlier)
-    # Without RANSAC the same data gives a visibly wrong motion in paper 1's plain update (the
+    # Without RANSAC the same data gives a visibly wrong motion in Kitt et al.'s plain update (the
     # robust reweighting alone resists these outliers too).
     bad = MotionEstimator(cfg.replace(**{'ransac.enabled': False, 'filter.robust_loss': 'none'})
                           ).estimate(corr, calib, 0.1)

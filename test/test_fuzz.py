@@ -16,9 +16,9 @@ from hypothesis import strategies as st
 import numpy as np
 import pytest
 from sensor_msgs.msg import Image
-from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.errors import CalibrationError, ImageError
+from stereo_vo_ros.estimation.camera import StereoCalibration
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import OdometryResult, StereoFrame, TrackingStatus
 from stereo_vo_ros.ros import conversions as conv

@@ -1,4 +1,4 @@
-"""Tests of stereo_vo_ros.metrics on trajectories whose errors are known by construction."""
+"""Tests of evaluation/metrics.py on trajectories whose errors are known by construction."""
 
 import copy
 import math
@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stereo_vo_ros.metrics import align_se3, ate_rmse, end_point_drift, evaluate, \
-    kitti_distances, KITTI_LENGTHS_M, kitti_odometry_error, kitti_segment_errors, \
-    path_distances, rotation_angle, rpe_frame_to_frame
+from stereo_vo_ros.evaluation.metrics import (align_se3, ate_rmse, end_point_drift, evaluate,
+                                              kitti_distances, KITTI_LENGTHS_M,
+                                              kitti_odometry_error, kitti_segment_errors,
+                                              path_distances, rotation_angle, rpe_frame_to_frame)
 
 REQUIRED_KEYS = {'t_rel_pct', 'r_rel_deg_per_100m', 'ate_rmse_m', 'rpe_trans_rmse_m',
                  'rpe_rot_rmse_deg', 'segments', 'end_drift_pct', 'path_length_m', 'frames'}

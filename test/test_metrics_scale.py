@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from stereo_vo_ros import metrics
+from stereo_vo_ros.evaluation import metrics
 
 
 def straight(n: int, step_m: float) -> np.ndarray:

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from stereo_vo_ros.config import Config
-from stereo_vo_ros.estimator import MotionEstimator
-from stereo_vo_ros.ground_plane import fit_ground_plane, ground_mask, road_speed, triangulate
-from stereo_vo_ros.motion import transform_from_velocity
+from stereo_vo_ros.estimation.estimator import MotionEstimator
+from stereo_vo_ros.estimation.motion import transform_from_velocity
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, TrackingStatus
+from stereo_vo_ros.road.ground_plane import fit_ground_plane, ground_mask, road_speed, triangulate
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 
 from test_estimator_core import kitti_calibration, observe, raw_rig
@@ -118,7 +118,7 @@ def co_moving_scene(rng):
 
 def test_ground_weight_prefers_the_road_to_a_bus_at_the_same_speed():
     calib, corr = co_moving_scene(np.random.default_rng(3))
-    # Paper 1's plain count: the bus and the far points (45) outvote the road and the far
+    # Kitt et al.'s plain count: the bus and the far points (45) outvote the road and the far
     # points (35), and the camera seems to stand still.
     plain = MotionEstimator(config(**{'ransac.ground_weight': 1.0})).estimate(corr, calib, DT)
     assert plain.status is TrackingStatus.OK

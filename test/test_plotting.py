@@ -1,4 +1,4 @@
-"""Tests of stereo_vo_ros.plotting: what is drawn, the report PNG, and import hygiene."""
+"""Tests of evaluation/plotting.py: what is drawn, the report PNG, and import hygiene."""
 
 import os
 from pathlib import Path
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stereo_vo_ros.plotting import plot_error_over_distance, plot_timing, plot_top_view, \
-    save_report
+from stereo_vo_ros.evaluation.plotting import (plot_error_over_distance, plot_timing,
+                                               plot_top_view, save_report)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -120,10 +120,10 @@ def test_save_report_writes_png(tmp_path, with_gt, with_timings, width):
 
 def test_only_plotting_imports_matplotlib_and_no_pyplot():
     code = ('import sys\n'
-            'import stereo_vo_ros.metrics, stereo_vo_ros.trajectory\n'
+            'import stereo_vo_ros.evaluation.metrics, stereo_vo_ros.evaluation.trajectory\n'
             'assert not any(m.startswith("matplotlib") for m in sys.modules), "core"\n'
             'assert not any(m.startswith(("rclpy", "tqdm")) for m in sys.modules)\n'
-            'import stereo_vo_ros.plotting\n'
+            'import stereo_vo_ros.evaluation.plotting\n'
             'assert "matplotlib.pyplot" not in sys.modules, "pyplot"\n')
     env = dict(os.environ, PYTHONPATH=str(REPO))
     proc = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,

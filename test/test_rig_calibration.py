@@ -8,18 +8,20 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stereo_vo_ros import cli
-from stereo_vo_ros.affine_klt import refine_affine
-from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.datasets import write_kitti
-from stereo_vo_ros.estimator import MotionEstimator
-from stereo_vo_ros.motion import transform_from_velocity
+from stereo_vo_ros.estimation.camera import StereoCalibration
+from stereo_vo_ros.estimation.estimator import MotionEstimator
+from stereo_vo_ros.estimation.motion import transform_from_velocity
+from stereo_vo_ros.estimation.rig_calibration import (apply_homography, camera_info_yaml,
+                                                      measure_rows, offsets_at_centre, pinned_rows,
+                                                      refined_camera_infos, rig_jacobian,
+                                                      RigCalibrator, right_homography,
+                                                      row_coupling)
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
-from stereo_vo_ros.rig_calibration import apply_homography, camera_info_yaml, measure_rows, \
-    offsets_at_centre, pinned_rows, refined_camera_infos, rig_jacobian, RigCalibrator, \
-    right_homography, row_coupling
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
+from stereo_vo_ros.tracking.affine_klt import refine_affine
 import yaml
 
 FX, CX, CY, BASELINE, W, H = 718.856, 607.19, 185.22, 0.537, 1241, 376

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from stereo_vo_ros.camera import StereoCalibration
 from stereo_vo_ros.config import Config, ConfigError
-from stereo_vo_ros.estimator import MotionEstimator
-from stereo_vo_ros.motion import velocity_from_transform
+from stereo_vo_ros.estimation.camera import StereoCalibration
+from stereo_vo_ros.estimation.estimator import MotionEstimator
+from stereo_vo_ros.estimation.motion import velocity_from_transform
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import StereoFrame
-from stereo_vo_ros.road_alignment import RoadAligner, RoadPlane
+from stereo_vo_ros.road.road_alignment import RoadAligner, RoadPlane
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 
 from test_estimator_core import kitti_calibration

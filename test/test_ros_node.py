@@ -32,7 +32,7 @@ from std_srvs.srv import Trigger
 from stereo_vo_ros.config import Config, to_yaml
 from stereo_vo_ros.datasets.rosbag import RosbagSequence, write_stereo_bag
 from stereo_vo_ros.errors import ConfigError
-from stereo_vo_ros.metrics import end_point_drift
+from stereo_vo_ros.evaluation.metrics import end_point_drift
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.ros import conversions as conv
 from stereo_vo_ros.ros.node import StereoVONode

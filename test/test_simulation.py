@@ -1,4 +1,4 @@
-"""Tests of stereo_vo_ros.simulation: ground truth consistency and estimator accuracy."""
+"""Tests of stereo_vo_ros.synthetic.simulation: ground truth consistency and estimator accuracy."""
 
 import json
 
@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from stereo_vo_ros.errors import ConfigError
-from stereo_vo_ros.motion import TransferModel, transform_from_velocity
+from stereo_vo_ros.estimation.motion import TransferModel, transform_from_velocity
 from stereo_vo_ros.records import TrackingStatus
-from stereo_vo_ros.simulation import paper_config, run_simulation, simulate_and_estimate, \
-    simulate_sequence, SimulationSpec, summarize
+from stereo_vo_ros.synthetic.simulation import (paper_config, run_simulation,
+                                                simulate_and_estimate, simulate_sequence,
+                                                SimulationSpec, summarize)
 
 KEYS = ('prev_left', 'prev_right', 'cur_left', 'cur_right')
 

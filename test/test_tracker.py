@@ -1,5 +1,5 @@
 """
-Tests of the stereo KLT tracker (paper 2) with real OpenCV.
+Tests of the stereo KLT tracker (Huang et al.) with real OpenCV.
 
 Synthetic stereo pairs are rendered from an analytic texture (a sum of random sinusoids), so
 sub-pixel shifts, disparities, lens distortion and plane-induced homographies are exact and the
@@ -16,14 +16,13 @@ import cv2
 import numpy as np
 import pytest
 
-from stereo_vo_ros.adaptive_threshold import adaptive_threshold, bicircular_threshold
-from stereo_vo_ros.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfig
 from stereo_vo_ros.errors import ConfigError, ImageError
-from stereo_vo_ros.klt_checks import (
-    bicircular_error, CheckSet, disparity_constraint, eigen_ratio, flow_edge_ratio,
-    gradient_matrix)
-from stereo_vo_ros.tracker import detect_corners, StereoTracker
+from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
+from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
+from stereo_vo_ros.tracking.klt_checks import (bicircular_error, CheckSet, disparity_constraint,
+                                               eigen_ratio, flow_edge_ratio, gradient_matrix)
+from stereo_vo_ros.tracking.tracker import detect_corners, StereoTracker
 
 W, H = 400, 300
 FOCAL = 300.0
@@ -259,7 +258,7 @@ def test_detection_respects_max_features_buckets_and_min_distance():
     assert 60 < len(pts) <= 120
     d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
     assert d.min() >= cfg.min_distance_px - 1.0
-    from stereo_vo_ros import bucketing
+    from stereo_vo_ros.tracking import bucketing
     assert bucketing.occupancy(pts, (W, H), bcfg).max() <= bcfg.max_per_bucket
     # Detection only where features are missing: nothing new near the existing ones.
     img = pair(M1)[0]
@@ -935,7 +934,7 @@ def test_photometric_map_is_not_applied_to_matching_images():
 
 def test_brightness_transfer_recovers_gain_and_offset():
     """Histogram quantiles give the gain and offset of an exposure change; saturation ignored."""
-    from stereo_vo_ros.photometric import apply_transfer, brightness_transfer, histogram
+    from stereo_vo_ros.tracking.photometric import apply_transfer, brightness_transfer, histogram
     img = render((0.0, 0.0), seed=3)
     brighter = exposed(img, 1.3, -6.0)  # saturates the brightest pixels
     gain, offset = brightness_transfer(histogram(img), histogram(brighter))
@@ -949,7 +948,7 @@ def test_brightness_transfer_recovers_gain_and_offset():
 
 def test_window_transfer_from_predicted_positions():
     """Window statistics at roughly known positions give gain and offset despite the motion."""
-    from stereo_vo_ros.photometric import window_transfer
+    from stereo_vo_ros.tracking.photometric import window_transfer
     a = render((0.0, 0.0), seed=5)
     b = exposed(render((3.0, -2.0), seed=5), 0.8, 7.0)
     rng = np.random.default_rng(0)

@@ -1,4 +1,4 @@
-"""Tests of stereo_vo_ros.trajectory: KITTI and TUM files, full precision, malformed input."""
+"""Tests of evaluation/trajectory.py: KITTI and TUM files, full precision, malformed input."""
 
 import math
 from pathlib import Path
@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stereo_vo_ros.errors import DatasetError
-from stereo_vo_ros.trajectory import as_poses, read_kitti, read_poses, read_tum, \
-    Trajectory, write_kitti, write_tum
+from stereo_vo_ros.evaluation.trajectory import (as_poses, read_kitti, read_poses, read_tum,
+                                                 Trajectory, write_kitti, write_tum)
 
 
 def random_poses(n, seed=0, scale=100.0):

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from stereo_vo_ros.config import Config, ConfigError
-from stereo_vo_ros.estimator import MotionEstimator
-from stereo_vo_ros.motion import rotation_from_rates, velocity_from_transform
+from stereo_vo_ros.estimation.estimator import MotionEstimator
+from stereo_vo_ros.estimation.motion import rotation_from_rates, velocity_from_transform
 from stereo_vo_ros.pipeline import StereoOdometry
+from stereo_vo_ros.road.vehicle_motion import lateral_constraint
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer, Trajectory
-from stereo_vo_ros.vehicle_motion import lateral_constraint
 
 DT = 0.1
 

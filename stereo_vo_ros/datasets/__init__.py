@@ -22,8 +22,8 @@ import numpy as np
 
 from .kitti import KittiSequence, write_kitti
 from .rosbag import BagTopics, RosbagSequence, write_stereo_bag
-from ..camera import StereoCalibration
 from ..errors import DatasetError
+from ..estimation.camera import StereoCalibration
 from ..records import StereoFrame
 from ..synthetic import SequenceSpec, StereoRenderer, SyntheticSequence
 

@@ -23,8 +23,8 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from ..camera import StereoCalibration
 from ..errors import CalibrationError, DatasetError
+from ..estimation.camera import StereoCalibration
 from ..records import StereoFrame
 
 logger = logging.getLogger(__name__)

@@ -27,8 +27,8 @@ from rosbags.typesys import get_typestore, Stores
 from scipy.spatial.transform import Rotation
 
 from .compressed import compress_grey, grey_from_compressed
-from ..camera import StereoCalibration
 from ..errors import CalibrationError, DatasetError, ImageError
+from ..estimation.camera import StereoCalibration
 from ..records import StereoFrame
 
 logger = logging.getLogger(__name__)

@@ -36,8 +36,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 
-from ..camera import StereoCalibration
 from ..errors import ImageError
+from ..estimation.camera import StereoCalibration
 from ..records import Correspondences, OdometryResult, TrackingStatus
 
 #: encoding -> (numpy dtype of one channel, channels). Everything else raises ImageError.

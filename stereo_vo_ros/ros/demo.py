@@ -61,12 +61,12 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
 
     from ..datasets import render_to_bag
     from ..datasets.rosbag import RosbagSequence
-    from ..metrics import evaluate
-    from ..plotting import save_report
+    from ..evaluation.metrics import evaluate
+    from ..evaluation.plotting import save_report
     from ..synthetic import SequenceSpec
-    from ..trajectory import write_kitti, write_tum
-    from .conversions import camera_pose_from_base_pose, nanoseconds_from_time, \
-        transform_from_xyz_rpy
+    from ..evaluation.trajectory import write_kitti, write_tum
+    from .conversions import (camera_pose_from_base_pose, nanoseconds_from_time,
+                              transform_from_xyz_rpy)
     from .player import BagPlayer
     from .process import node_process, spinning
 

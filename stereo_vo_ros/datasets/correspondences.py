@@ -3,7 +3,7 @@ Stereo correspondence files (.npz) and the egomotion of a whole correspondence s
 
 This is the input of ``stereo_vo estimate CORR.npz --poses OUT.txt [--config FILE]``: stereo
 correspondences from any front end (another tracker, a simulation), turned into a trajectory by
-the egomotion estimator of paper 1 without any image.
+the egomotion estimator of Kitt et al. without any image.
 
 File format
 -----------
@@ -40,7 +40,7 @@ Any other key is rejected, so a misspelt key is never silently ignored.
 The estimated trajectory (:func:`estimate_trajectory`) has M + 1 poses ``T_world_cam``: the
 left camera optical frame (x right, y down, z forward, metres) of every stereo frame in the
 frame of the first left camera, which is the identity (KITTI convention; write it with
-:func:`stereo_vo_ros.trajectory.write_kitti`).
+:func:`stereo_vo_ros.evaluation.trajectory.write_kitti`).
 """
 
 from __future__ import annotations
@@ -55,11 +55,11 @@ import zipfile
 
 import numpy as np
 
-from .camera import StereoCalibration
-from .config import Config
-from .errors import CalibrationError, DatasetError
-from .estimator import MotionEstimator
-from .records import Correspondences, MotionEstimate, TrackingStatus
+from ..config import Config
+from ..errors import CalibrationError, DatasetError
+from ..estimation.camera import StereoCalibration
+from ..estimation.estimator import MotionEstimator
+from ..records import Correspondences, MotionEstimate, TrackingStatus
 
 LOG = logging.getLogger(__name__)
 

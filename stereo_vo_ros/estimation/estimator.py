@@ -1,5 +1,5 @@
 """
-Frame-to-frame egomotion from stereo correspondences (paper 1, section III).
+Frame-to-frame egomotion from stereo correspondences (Kitt et al., section III).
 
 :class:`MotionEstimator` holds the filter state (the velocity and its covariance) and, for each
 new set of correspondences between the previous and the current stereo pair, runs
@@ -10,7 +10,7 @@ new set of correspondences between the previous and the current stereo pair, run
    the papers: they keep features on moving vehicles out),
 3. RANSAC with 3-point samples (section III-D), its inliers on the ground plane of the previous
    pair counted ``ransac.ground_weight`` times (not in the papers; see
-   :mod:`~stereo_vo_ros.ground_plane`); after a reset of the velocity (the first pair, a loss,
+   :mod:`~stereo_vo_ros.road.ground_plane`); after a reset of the velocity (the first pair, a loss,
    a gap) eq. 14 assumes ``ransac.startup_outlier_ratio``, i.e. more samples (not in the papers),
 4. the final filter update on all inliers of the best sample (section III-E), then
    ``filter.robust_rounds`` updates with Cauchy weights from the residuals (not in the
@@ -28,14 +28,14 @@ import logging
 import cv2
 import numpy as np
 
-from . import bucketing
 from .camera import StereoCalibration
-from .config import Config, RansacConfig
 from .filters import make_filter
-from .ground_plane import ground_mask
 from .motion import TransferModel, transform_from_velocity
 from .ransac import BatchedMeasurement, ransac, reprojection_errors
-from .records import Correspondences, MotionEstimate, TrackingStatus
+from ..config import Config, RansacConfig
+from ..records import Correspondences, MotionEstimate, TrackingStatus
+from ..road.ground_plane import ground_mask
+from ..tracking import bucketing
 
 LOG = logging.getLogger(__name__)
 #: Coasting inflates the velocity variances up to this many times the initial ones.
@@ -392,7 +392,7 @@ class MotionEstimator:
         """
         Filter update on the inliers, robustly reweighted (``filter.robust_loss``).
 
-        The first update is paper 1's (section III-E). With the Cauchy loss, each further round
+        The first update is Kitt et al.'s (section III-E). With the Cauchy loss, each further round
         computes every inlier's reprojection error ``e`` (pixels, scaled as RANSAC's) under the
         latest estimate, ``sigma`` from them (:func:`residual_sigma`, as the adaptive gate), and
         updates again from the prior with each inlier's variances divided by its weight

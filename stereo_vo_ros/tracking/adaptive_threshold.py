@@ -1,5 +1,5 @@
 """
-Adaptive threshold of the light bi-circular check (paper 2, eq. 8).
+Adaptive threshold of the light bi-circular check (Huang et al., eq. 8).
 
 ``delta_d = rho * loss / maxtrack + epsilon``: the threshold grows when many features are lost
 in a frame (sharp turns, large displacements: keep more features with a loose check) and
@@ -9,8 +9,8 @@ that satisfy a tight check).
 
 from __future__ import annotations
 
-from .config import TrackerConfig
 from .klt_checks import CheckSet
+from ..config import TrackerConfig
 
 
 def adaptive_threshold(loss: int, maxtrack: int, rho: float, epsilon_px: float) -> float:

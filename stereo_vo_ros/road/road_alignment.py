@@ -46,9 +46,9 @@ import math
 import cv2
 import numpy as np
 
-from .camera import StereoCalibration
-from .config import RansacConfig, RoadConfig
-from .motion import velocity_from_transform
+from ..config import RansacConfig, RoadConfig
+from ..estimation.camera import StereoCalibration
+from ..estimation.motion import velocity_from_transform
 
 #: The plane lies at least this far below the optical centre (m).
 MIN_HEIGHT_M = 0.1
@@ -168,7 +168,7 @@ class RoadMotion:
     ----------
     T_prev_cur : (4, 4) float64 pose of the current left camera in the previous one (m).
     velocity : (6,) float64 the same motion as a state of the estimator (m/s, rad/s, previous
-        left frame; see :mod:`~stereo_vo_ros.motion`).
+        left frame; see :mod:`~stereo_vo_ros.estimation.motion`).
     covariance : (6, 6) float64 covariance of ``velocity`` (inflated by
         ``road.covariance_inflation``); meaningful in the rows and columns of ``components``.
     components : list of int the state components measured (``MOTION_COMPONENTS``): only

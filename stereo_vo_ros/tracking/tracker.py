@@ -1,5 +1,5 @@
 """
-Stereo KLT feature tracker with the light adaptive checks of paper 2.
+Stereo KLT feature tracker with the light adaptive checks of Huang et al.
 
 Every call to ``StereoTracker.track`` takes the current stereo pair (t2) and returns the
 quadruples (left t1, right t1, left t2, right t2) of the features that survive, in this order:
@@ -45,14 +45,14 @@ import numpy as np
 from . import bucketing
 from .adaptive_threshold import bicircular_threshold
 from .affine_klt import refine_affine
-from .camera import StereoCalibration
-from .config import BucketingConfig, TrackerConfig
-from .errors import ConfigError, ImageError
-from .klt_checks import (
-    bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint, disparity_in_range,
-    eigen_ratio, flow_edge_ratio, lk_pass, round_trip_error)
+from .klt_checks import (bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint,
+                         disparity_in_range, eigen_ratio, flow_edge_ratio, lk_pass,
+                         round_trip_error)
 from .photometric import PhotometricMatcher
-from .records import Correspondences
+from ..config import BucketingConfig, TrackerConfig
+from ..errors import ConfigError, ImageError
+from ..estimation.camera import StereoCalibration
+from ..records import Correspondences
 
 logger = logging.getLogger(__name__)
 
@@ -426,7 +426,7 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
 
 class StereoTracker:
     """
-    Stereo KLT tracker (paper 2): one call per stereo pair.
+    Stereo KLT tracker (Huang et al.): one call per stereo pair.
 
     Parameters
     ----------

@@ -1,14 +1,14 @@
 """
-Motion parameterisation (paper 1, eqs. 6-8) and the trifocal measurement function h(y).
+Motion parameterisation (Kitt et al., eqs. 6-8) and the trifocal measurement function h(y).
 
 State ``y = (V_X, V_Y, V_Z, w_X, w_Y, w_Z)``: linear (m/s) and angular (rad/s) velocity of the
 stereo rig, expressed in the PREVIOUS LEFT camera optical frame (x right, y down, z forward).
-Paper 1 uses the previous right camera as reference; we use the previous left one, which is
+Kitt et al. uses the previous right camera as reference; we use the previous left one, which is
 where the odometry is reported. Over a time step ``dt`` (s) the motion is
 
 * ``t = V * dt`` (eq. 7) and ``R = R_Z(w_Z dt) R_X(w_X dt) R_Y(w_Y dt)`` (eqs. 6 and 8),
 * ``T_prev_cur = [[R, t], [0, 1]]``: the pose of the current left camera in the previous left
-  camera frame, so a forward-driving camera has ``V_Z > 0``. (Paper 1 writes the projection as
+  camera frame, so a forward-driving camera has ``V_Z > 0``. (Kitt et al. writes the projection as
   ``K [R | t]``, i.e. the inverse transform; both parameterise the same motion.)
 
 The measurement function (:class:`TransferModel`) predicts the 4N pixel coordinates
@@ -22,8 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import StereoCalibration
-from .trifocal import fundamental_from_projections, perpendicular_lines, tensor_basis, \
-    transfer_basis
+from .trifocal import (fundamental_from_projections, perpendicular_lines, tensor_basis,
+                       transfer_basis)
 
 
 def rotation_zxy(theta_z: np.ndarray, phi_x: np.ndarray, psi_y: np.ndarray) -> np.ndarray:
@@ -97,7 +97,7 @@ def _pair_geometry(calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
 
 class TransferModel:
     """
-    Measurement function h(y) of paper 1 for one frame pair.
+    Measurement function h(y) of Kitt et al. for one frame pair.
 
     Parameters
     ----------
@@ -108,7 +108,7 @@ class TransferModel:
     dt : float
         Time between the previous and the current pair (s), > 0.
     calib_cur : StereoCalibration, optional
-        Calibration of the current pair if it changed (paper 1 allows a varying calibration).
+        Calibration of the current pair if it changed (Kitt et al. allows a varying calibration).
 
     Notes
     -----

@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
 """
-Reproduce the simulation experiments of paper 1 (Table I, Fig. 5, section IV-C).
+Reproduce the simulation experiments of Kitt et al. (Table I, Fig. 5, section IV-C).
 
 Every experiment runs over ``--sequences`` random sequences (seeds ``--seed``, ``--seed + 1``,
-...) simulated by :mod:`stereo_vo_ros.simulation` (1344 x 391 px, f = 645 px, baseline 0.7 m,
-10 Hz, about 10 m/s, 40 points, 0.7 px noise); the estimator's measurement noise equals the
-simulated noise (:func:`stereo_vo_ros.simulation.paper_config`).
+...) simulated by :mod:`stereo_vo_ros.synthetic.simulation` (1344 x 391 px, f = 645 px, baseline
+0.7 m, 10 Hz, about 10 m/s, 40 points, 0.7 px noise); the estimator's measurement noise equals the
+simulated noise (:func:`stereo_vo_ros.synthetic.simulation.paper_config`).
 
 * Table I: final position error (mean, std) of ISPKF, IEKF, UKF and EKF on ``--frames``
   (2000) frame pairs without outliers. RANSAC is off (no outliers; the paper's IV-A compares
@@ -20,9 +20,11 @@ simulated noise (:func:`stereo_vo_ros.simulation.paper_config`).
 
 Usage::
 
-    python benchmarks/bench_paper1.py [--sequences 10] [--frames 2000] [--conv-frames 1000]
+    python benchmarks/bench_kitt_simulation.py [--sequences 10] [--frames 2000] [--conv-frames
+    1000]
         [--experiments table1 fig5 ivc] [--json results.json]
-    python benchmarks/bench_paper1.py --sequences 2 --frames 200 --conv-frames 100  # quick
+    python benchmarks/bench_kitt_simulation.py --sequences 2 --frames 200 --conv-frames 100  #
+    quick
 """
 
 import argparse
@@ -35,8 +37,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
 
-from stereo_vo_ros.simulation import paper_config, simulate_and_estimate, \
-    simulate_sequence, SimulationSpec, summarize  # noqa: E402
+from stereo_vo_ros.synthetic.simulation import (  # noqa: E402
+    paper_config, simulate_and_estimate, simulate_sequence, SimulationSpec, summarize)
 
 FILTERS = ('ispkf', 'iekf', 'ukf', 'ekf')
 PAPER_TABLE1 = {'ispkf': (33.5, 15.8), 'iekf': (34.3, 15.6), 'ukf': (33.5, 15.9),
@@ -209,7 +211,7 @@ def main(argv=None):
     ap.add_argument('--json', help='also write every per-sequence result to this file')
     args = ap.parse_args(argv)
     seeds = list(range(args.seed, args.seed + args.sequences))
-    print(f'# Paper 1 simulation benchmark: seeds {seeds[0]}..{seeds[-1]}, numpy '
+    print(f'# Kitt et al. simulation benchmark: seeds {seeds[0]}..{seeds[-1]}, numpy '
           f'{np.__version__}')
     t0 = time.perf_counter()
     out = {}

@@ -1,5 +1,5 @@
 """
-Kalman filter updates for the 6-D egomotion state (paper 1, section III-E).
+Kalman filter updates for the 6-D egomotion state (Kitt et al., section III-E).
 
 Four filters behind one interface (:class:`Filter`), all batched over B independent problems
 (RANSAC hypotheses are solved side by side):
@@ -41,8 +41,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .config import FilterConfig
-from .errors import ConfigError
+from ..config import FilterConfig
+from ..errors import ConfigError
 
 #: states (B, S, 6) -> predicted measurements (B, S, M)
 MeasurementFn = Callable[[np.ndarray], np.ndarray]
@@ -251,7 +251,7 @@ def _sub(h: MeasurementFn, active: np.ndarray, B: int) -> MeasurementFn:
 
 
 class ISPKF(_BaseFilter):
-    """Iterated Sigma Point Kalman Filter (the default, paper 1)."""
+    """Iterated Sigma Point Kalman Filter (the default, Kitt et al.)."""
 
     name = 'ispkf'
     iterated = True

@@ -63,8 +63,8 @@ from scipy.spatial.transform import Rotation
 from scipy.special import gammaincinv
 
 from .camera import StereoCalibration
-from .config import RigConfig
-from .records import Correspondences, RigEstimate
+from ..config import RigConfig
+from ..records import Correspondences, RigEstimate
 
 LOG = logging.getLogger(__name__)
 

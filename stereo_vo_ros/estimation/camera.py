@@ -8,7 +8,7 @@ Two input kinds are supported:
 * ``raw``: the images carry lens distortion; K and D describe each camera, and the rectification
   rotations R of both cameras plus P of the right one give the extrinsics between the cameras.
   Tracked points are undistorted to the ideal pinhole image of the camera's own K; the images
-  are never rectified (paper 1 needs no rectification, only calibration).
+  are never rectified (Kitt et al. needs no rectification, only calibration).
 
 Frames: camera optical frames (x right, y down, z forward, metres). The extrinsics map points
 from the left camera frame into the right one: ``X_right = R_right_left @ X_left + t_right_left``.
@@ -22,7 +22,7 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
-from .errors import CalibrationError
+from ..errors import CalibrationError
 
 INPUT_KINDS = ('rectified', 'raw')
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
@@ -239,7 +239,7 @@ class StereoCalibration:
         """
         Distance (pixels) of right points to the epipolar lines of left points.
 
-        For rectified input this is ``|y_left - y_right|`` (eq. 6 of paper 2). Inputs are
+        For rectified input this is ``|y_left - y_right|`` (eq. 6 of Huang et al.). Inputs are
         (N, 2) ideal pixel coordinates; returns (N,) float64.
         """
         x_left = np.asarray(x_left, np.float64)

@@ -5,9 +5,9 @@ A car, or any robot on wheels that do not slide, moves in the direction it point
 turns about (for a car, the middle of the rear axle) then travels along an arc whose chord, over
 a pair, leaves the old heading at half the heading change. A camera that looks forward along the
 vehicle, ``lever_arm_m`` ahead of that point, sees its own lateral motion fixed by its yaw rate.
-Frame and state as in :mod:`~stereo_vo_ros.motion`: the previous left camera's optical frame
-(x right, y down, z forward, m) and ``y = (V_X, V_Y, V_Z, w_X, w_Y, w_Z)`` (m/s, rad/s), so the
-pair's translation is ``V dt`` and its heading change ``psi = w_Y dt`` (about the camera's y
+Frame and state as in :mod:`~stereo_vo_ros.estimation.motion`: the previous left camera's optical
+frame (x right, y down, z forward, m) and ``y = (V_X, V_Y, V_Z, w_X, w_Y, w_Z)`` (m/s, rad/s), so
+the pair's translation is ``V dt`` and its heading change ``psi = w_Y dt`` (about the camera's y
 axis, down; positive turns the view to the right).
 
 With ``l`` the lever arm, ``t = V dt`` and the turning point's forward travel

@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import DatasetError
+from ..errors import DatasetError
 
 _LOG = logging.getLogger(__name__)
 

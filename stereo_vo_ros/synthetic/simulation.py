@@ -1,5 +1,5 @@
 """
-Simulated stereo sequences of paper 1 (sections IV-A to IV-C) and their evaluation.
+Simulated stereo sequences of Kitt et al. (sections IV-A to IV-C) and their evaluation.
 
 The paper evaluates its filters on simulated sequences: 2000 frames at a mean speed of 10 m/s
 (2000 m), 40 scene points per frame, Gaussian pixel noise of 0.7 px, and for the outlier study
@@ -14,8 +14,8 @@ Time
     ``frames`` counts motions; the sequence has ``frames + 1`` stereo frames.
 Trajectory (:func:`simulate_velocities`)
     The true motion of every step is given in the estimator's own parameterisation (velocity
-    of the previous left camera, :func:`~stereo_vo_ros.motion.transform_from_velocity`), which
-    can express any rigid motion. Each component is a smooth random signal: a sum of three
+    of the previous left camera, :func:`~stereo_vo_ros.estimation.motion.transform_from_velocity`),
+    which can express any rigid motion. Each component is a smooth random signal: a sum of three
     sinusoids with random periods and phases. Forward speed ``speed`` +/- ``speed_amplitude``
     (periods 20-120 s, clipped to at least 20 % of ``speed``), yaw rate (about the camera's
     y axis) +/- ``yaw_rate_deg`` (periods 15-90 s: gentle turns both ways), pitch and roll
@@ -40,10 +40,10 @@ Outliers (``outlier_ratio``, ``outlier_model``)
     one image row); ``mixed`` (default) -- half of the outliers (rounded down) are moving
     points, the others mismatches.
 
-:func:`run_simulation` runs the :class:`~stereo_vo_ros.estimator.MotionEstimator` on such a
-sequence through :func:`~stereo_vo_ros.correspondence_io.iter_estimates` (the very code path of
-``stereo_vo estimate``), integrates ``T_world_cur = T_world_prev @ T_prev_cur`` and returns
-JSON-ready figures. Use :func:`paper_config` to build the matching configuration: the
+:func:`run_simulation` runs the :class:`~stereo_vo_ros.estimation.estimator.MotionEstimator` on
+such a sequence through :func:`~stereo_vo_ros.datasets.correspondences.iter_estimates` (the very
+code path of ``stereo_vo estimate``), integrates ``T_world_cur = T_world_prev @ T_prev_cur`` and
+returns JSON-ready figures. Use :func:`paper_config` to build the matching configuration: the
 filter's measurement noise must equal the simulated pixel noise for the paper's experiments.
 """
 
@@ -55,12 +55,12 @@ import math
 
 import numpy as np
 
-from .camera import StereoCalibration
-from .config import Config
-from .correspondence_io import CorrespondenceData, iter_estimates
-from .errors import ConfigError
-from .motion import transform_from_velocity
-from .records import TrackingStatus
+from ..config import Config
+from ..datasets.correspondences import CorrespondenceData, iter_estimates
+from ..errors import ConfigError
+from ..estimation.camera import StereoCalibration
+from ..estimation.motion import transform_from_velocity
+from ..records import TrackingStatus
 
 LOG = logging.getLogger(__name__)
 
@@ -74,7 +74,7 @@ _MAX_REDRAWS = 200
 @dataclass(frozen=True)
 class SimulationSpec:
     """
-    Parameters of one simulated sequence (defaults: paper 1, section IV-A).
+    Parameters of one simulated sequence (defaults: Kitt et al., section IV-A).
 
     Attributes
     ----------
@@ -403,7 +403,7 @@ def paper_config(filter_type: str = 'ispkf', ransac: bool = True, threshold: flo
     """
     Return the estimator configuration of the paper's simulation experiments.
 
-    Paper 1's estimator as published: the additions for moving vehicles (ground-plane weights,
+    Kitt et al.'s estimator as published: the additions for moving vehicles (ground-plane weights,
     outlier streaks, more RANSAC samples after a reset) and the robust reweighting of the final
     update are switched off.
 
@@ -414,7 +414,7 @@ def paper_config(filter_type: str = 'ispkf', ransac: bool = True, threshold: flo
     ransac : bool
         RANSAC outlier rejection on or off.
     threshold : float
-        Termination threshold of the iterated filters, both in m/s and in deg/s (paper 1,
+        Termination threshold of the iterated filters, both in m/s and in deg/s (Kitt et al.,
         footnote 2).
     noise_px : float
         Simulated pixel noise; the filter's ``pixel_noise_px`` is set to it (at least

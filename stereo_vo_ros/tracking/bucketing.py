@@ -1,5 +1,5 @@
 """
-Bucketing (paper 1, section III-C): keep at most k features per cell of a grid over a ROI.
+Bucketing (Kitt et al., section III-C): keep at most k features per cell of a grid over a ROI.
 
 The region of interest is the image minus a margin; the ROI is divided into ``rows x cols``
 non-overlapping rectangles and in each at most ``max_per_bucket`` features are kept, the best
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import BucketingConfig
+from ..config import BucketingConfig
 
 
 def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig) -> np.ndarray:

@@ -1,5 +1,5 @@
 """
-KLT passes and the consistency checks of the light adaptive feature tracking paper (paper 2).
+KLT passes and the consistency checks of the light adaptive feature tracking paper (Huang et al.).
 
 One pyramidal Lucas-Kanade pass (``lk_pass``) wraps ``cv2.calcOpticalFlowPyrLK``; the checks are
 pure functions on the points it returns:
@@ -29,9 +29,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import StereoCalibration
-from .config import TRACKER_VARIANTS
-from .errors import ConfigError
+from ..config import TRACKER_VARIANTS
+from ..errors import ConfigError
+from ..estimation.camera import StereoCalibration
 
 #: Convergence threshold of one KLT iteration (pixels), as VINS-Fusion uses.
 KLT_EPSILON_PX = 0.01

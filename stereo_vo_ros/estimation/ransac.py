@@ -1,5 +1,5 @@
 """
-RANSAC outlier rejection (paper 1, section III-D).
+RANSAC outlier rejection (Kitt et al., section III-D).
 
 Minimal samples of ``s = 3`` correspondences; the number of samples follows eq. 14,
 ``n = log(1 - p) / log(1 - (1 - eps)^s)``. Every sample gives a motion hypothesis from the filter
@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from .config import RansacConfig
 from .filters import Filter
 from .motion import TransferModel
+from ..config import RansacConfig
 
 SAMPLE_SIZE = 3
 

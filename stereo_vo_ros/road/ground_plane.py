@@ -29,8 +29,8 @@ import math
 import cv2
 import numpy as np
 
-from .camera import StereoCalibration
-from .config import RansacConfig
+from ..config import RansacConfig
+from ..estimation.camera import StereoCalibration
 
 #: Points farther than this are left out of the fit (m): their depth is too uncertain.
 MAX_RANGE_M = 60.0

@@ -1,5 +1,5 @@
 """
-Trifocal tensor (paper 1, eq. 4) and point-line-point transfer (eq. 5).
+Trifocal tensor (Kitt et al., eq. 4) and point-line-point transfer (eq. 5).
 
 Index conventions follow Hartley & Zisserman: ``T[i, j, k] = T_i^{jk}`` for cameras A, B, C with
 projection matrices ``P_A, P_B, P_C`` (3x4, pixels). A correspondence ``x_A <-> x_B`` is
