@@ -301,22 +301,29 @@ def test_node_process_remapping_exact_sync_and_auto_qos(sequence, bag):
     try:
         player = BagPlayer(h.node, bag, topics=IMAGE_TOPICS + INFO_TOPICS, rate=1.0,
                            remap=remaps)
+
+        def input_qos() -> str:
+            ours = [_values(d.status[0]) for d in h.diagnostics
+                    if d.status and 'stereo_vo' in d.status[0].name]
+            return ours[-1].get('input_qos', '') if ours else ''
+
         with node_process(*args) as proc:
             _wait_for_node(h, player, '/vo/odom')
+            # The player's writers may be discovered after the node started: auto then
+            # subscribes best effort first and switches within a second.
+            assert h.wait_for(lambda: input_qos() == 'reliable (ros.qos auto)', 10.0), \
+                input_qos()
+            assert h.wait_for(lambda: h.node.count_subscribers('/cam/left/image_rect') == 1,
+                              5.0)
             assert h.node.count_subscribers('/left/image_rect') == 0
-            assert h.node.count_subscribers('/cam/left/image_rect') == 1
             _paced_play(h, player, timeout_s=5.0, stop_ns=int(round(frames[15].stamp_s * 1e9)))
             h.settle(15)
-            h.wait_for(lambda: any('input_qos' in _values(d.status[0]) for d in h.diagnostics
-                                   if d.status and 'stereo_vo' in d.status[0].name), 5.0)
         assert proc['returncode'] == 0, proc['output']
         # The player publishes reliably, so auto subscribes reliably: every pair arrives.
         assert len(h.odom) == 15, proc['output']
         _check_odometry(h.odom, frames)
         assert 'exact sync, auto QoS' in proc['output']
-        ours = [_values(d.status[0]) for d in h.diagnostics
-                if d.status and 'stereo_vo' in d.status[0].name]
-        assert ours[-1]['input_qos'] == 'reliable (ros.qos auto)', ours[-1]
+        assert input_qos() == 'reliable (ros.qos auto)', input_qos()
     finally:
         h.close()
 
