@@ -113,6 +113,13 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
                 if not player.wait_for_subscribers(30.0, topics=image_topics):
                     raise DatasetError(f'the node did not subscribe to {image_topics} within '
                                        f'30 s; see {log_path}')
+                # ros.qos auto: the node subscribes reliably once it has seen the player's
+                # reliable writers (within a second); replaying before would lose images.
+                deadline_qos = time.monotonic() + 10.0
+                while time.monotonic() < deadline_qos and not all(
+                        info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                        for t in image_topics for info in node.get_subscriptions_info_by_topic(t)):
+                    time.sleep(0.05)
                 time.sleep(0.5)  # let the node see the publishers (discovery both ways)
                 published: dict[int, int] = {}
                 deadline = t_rendered + timeout_s
