@@ -175,6 +175,10 @@ def test_choose_node_profile_respects_the_user_and_the_kernel():
         is None
     path, reason = dds.choose_node_profile({}, 212992)
     assert path is None and 'net.core.rmem_max' in reason and dds.PUBLISHER_PROFILE in reason
+    env = {'FASTRTPS_DEFAULT_PROFILES_FILE': ''}  # the launch file's default dds_profile
+    dds.apply_node_profile(env)  # the node's profile, or none at all: never an empty path
+    assert env.get('FASTRTPS_DEFAULT_PROFILES_FILE') in (None,
+                                                         str(dds.config_path(dds.NODE_PROFILE)))
 
 
 def _composed(h: Harness, **params) -> StereoVONode:

@@ -114,6 +114,9 @@ def choose_node_profile(environ: Mapping[str, str], rmem: int | None
 def apply_node_profile(environ: os._Environ | dict | None = None) -> str:
     """Choose the node's profile (``choose_node_profile``), set it in ``environ``; the reason."""
     environ = os.environ if environ is None else environ
+    for var in PROFILE_VARIABLES:  # the launch file passes an empty one for "not chosen"
+        if var in environ and not environ[var]:
+            del environ[var]
     path, reason = choose_node_profile(environ, rmem_max())
     if path is not None:
         environ[PROFILE_VARIABLES[0]] = path
