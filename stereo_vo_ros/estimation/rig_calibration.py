@@ -622,9 +622,11 @@ class RigCalibrator:
         """
         ``row_coupling`` of the pinned matches of both pairs ((N,) each, 0 elsewhere).
 
-        None while no row correction is applied (nothing to undo) or without the images.
+        None while no row correction is applied (nothing to undo; also with ``rig.enabled``
+        off, when ``corrected`` returns its input) or without the images.
         """
-        if prev_img is None or cur_img is None or not np.any(self.applied()[BLOCKS[0]]):
+        if prev_img is None or cur_img is None or not self.cfg.enabled or \
+                not np.any(self.applied()[BLOCKS[0]]):
             self._coupling_ids = None
             return None
         ids = corr.ids if corr.ids.size == len(corr) else None

@@ -484,7 +484,6 @@ class StereoVONode(Node):
             pairs = self._sync.add(side, stamp_ns, msg)
             stats = self._sync.stats
             after = (stats.restarts, stats.late[side], dict(stats.unmatched))
-            recent = {s: np.array(self._recent_ns[s], np.int64) for s in ('left', 'right')}
         if after[0] > before[0]:
             self._warn(f'{side} image stamp {stamp_ns * 1e-9:.9f} s is '
                        f'{(previous - stamp_ns) * 1e-9:.3f} s before the previous one: the '
@@ -494,8 +493,9 @@ class StereoVONode(Node):
             self._warn(f'{side} image dropped: stamp {stamp_ns * 1e-9:.9f} s is not after the '
                        'last stereo pair (duplicate or out-of-order stamp)', key='sync-late')
         lost = {s: after[2][s] - before[2][s] for s in ('left', 'right')}
-        if any(lost.values()):
-            self._on_unmatched(lost, recent)
+        if any(lost.values()):  # only the image callbacks append to _recent_ns
+            self._on_unmatched(lost, {s: np.array(self._recent_ns[s], np.int64)
+                                      for s in ('left', 'right')})
         for pair in pairs:
             self._note_arrival_gap(pair)
             self._on_pair(pair)
