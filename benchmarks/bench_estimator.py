@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
 
-from stereo_vo_ros.datasets.correspondences import iter_estimates  # noqa: E402
+from stereo_vo_ros.io.correspondences import iter_estimates  # noqa: E402
 from stereo_vo_ros.synthetic.simulation import (  # noqa: E402
     paper_config, simulate_sequence, SimulationSpec)
 from stereo_vo_ros.tracking import bucketing  # noqa: E402

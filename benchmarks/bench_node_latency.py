@@ -62,7 +62,7 @@ from rclpy.node import Node
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stereo_vo_ros.datasets.compressed import compress_grey, grey_from_compressed  # noqa: E402
+from stereo_vo_ros.io.compressed import compress_grey, grey_from_compressed  # noqa: E402
 from stereo_vo_ros.estimation.camera import StereoCalibration  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import StereoFrame  # noqa: E402

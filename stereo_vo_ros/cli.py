@@ -69,7 +69,7 @@ def _write_poses(path: Path, stamps: np.ndarray, poses: np.ndarray, fmt: str) ->
 # -- commands --------------------------------------------------------------------------
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the pipeline over a KITTI folder or a rosbag2 and write the trajectory."""
-    from .datasets import open_sequence
+    from .io import open_sequence
     from .offline import run_frames, run_stats
     cfg = _config(args)
     if args.left_topic or args.right_topic:
@@ -125,7 +125,7 @@ def _save_calibration(path: Path, out) -> None:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     """Run the estimator on correspondences from an .npz file."""
-    from .datasets.correspondences import estimate_trajectory, load_npz
+    from .io.correspondences import estimate_trajectory, load_npz
     from .evaluation.trajectory import write_kitti
     poses = estimate_trajectory(load_npz(args.correspondences), _config(args))
     Path(args.poses).parent.mkdir(parents=True, exist_ok=True)

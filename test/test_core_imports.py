@@ -64,7 +64,7 @@ def module_name(path: Path) -> str:
     Returns
     -------
     str
-        For example ``stereo_vo_ros.estimation.camera`` or ``stereo_vo_ros.datasets`` for a
+        For example ``stereo_vo_ros.estimation.camera`` or ``stereo_vo_ros.io`` for a
         package's ``__init__.py``.
 
     """

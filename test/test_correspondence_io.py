@@ -1,10 +1,10 @@
-"""Tests of stereo_vo_ros.datasets.correspondences: the .npz format and trajectory estimation."""
+"""Tests of stereo_vo_ros.io.correspondences: the .npz format and trajectory estimation."""
 
 import numpy as np
 import pytest
 
 from stereo_vo_ros.config import Config
-from stereo_vo_ros.datasets.correspondences import (CorrespondenceData, estimate_trajectory,
+from stereo_vo_ros.io.correspondences import (CorrespondenceData, estimate_trajectory,
                                                     iter_estimates, load_npz, OPTIONAL_KEYS,
                                                     REQUIRED_KEYS, save_npz)
 from stereo_vo_ros.errors import DatasetError

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from stereo_vo_ros import cli
 from stereo_vo_ros.config import Config
-from stereo_vo_ros.datasets import write_kitti
+from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.estimation.camera import StereoCalibration
 from stereo_vo_ros.estimation.estimator import MotionEstimator
 from stereo_vo_ros.estimation.motion import transform_from_velocity

@@ -26,7 +26,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from ros_harness import domain_id, Harness, values as _values
 from sensor_msgs.msg import Image
 from stereo_vo_ros import cli
-from stereo_vo_ros.datasets.rosbag import BagTopics, RosbagSequence, write_stereo_bag
+from stereo_vo_ros.io.rosbag import BagTopics, RosbagSequence, write_stereo_bag
 from stereo_vo_ros.ros import conversions as conv
 from stereo_vo_ros.ros import dds
 from stereo_vo_ros.ros.node import StereoVONode

@@ -59,8 +59,8 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from nav_msgs.msg import Odometry
 
-    from ..datasets import render_to_bag
-    from ..datasets.rosbag import RosbagSequence
+    from ..io import render_to_bag
+    from ..io.rosbag import RosbagSequence
     from ..evaluation.metrics import evaluate
     from ..evaluation.plotting import save_report
     from ..synthetic import SequenceSpec

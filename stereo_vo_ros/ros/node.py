@@ -72,7 +72,7 @@ from . import dds
 from .sync import StereoPair, StereoSynchronizer
 from .tf_tree import TransformListener
 from ..config import Config, from_flat
-from ..datasets.compressed import grey_from_compressed
+from ..io.compressed import grey_from_compressed
 from ..errors import CalibrationError, ConfigError, ImageError
 from ..pipeline import RESTART_JUMP_S, StereoOdometry
 from ..records import OdometryResult, RigEstimate, StereoFrame, TrackingStatus

@@ -41,7 +41,7 @@ Outliers (``outlier_ratio``, ``outlier_model``)
     points, the others mismatches.
 
 :func:`run_simulation` runs the :class:`~stereo_vo_ros.estimation.estimator.MotionEstimator` on
-such a sequence through :func:`~stereo_vo_ros.datasets.correspondences.iter_estimates` (the very
+such a sequence through :func:`~stereo_vo_ros.io.correspondences.iter_estimates` (the very
 code path of ``stereo_vo estimate``), integrates ``T_world_cur = T_world_prev @ T_prev_cur`` and
 returns JSON-ready figures. Use :func:`paper_config` to build the matching configuration: the
 filter's measurement noise must equal the simulated pixel noise for the paper's experiments.
@@ -56,7 +56,7 @@ import math
 import numpy as np
 
 from ..config import Config
-from ..datasets.correspondences import CorrespondenceData, iter_estimates
+from ..io.correspondences import CorrespondenceData, iter_estimates
 from ..errors import ConfigError
 from ..estimation.camera import StereoCalibration
 from ..estimation.motion import transform_from_velocity
