@@ -71,11 +71,11 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
-from stereo_vo_ros.io import open_sequence  # noqa: E402
 from stereo_vo_ros.errors import ConfigError  # noqa: E402
 from stereo_vo_ros.estimation.camera import StereoCalibration  # noqa: E402
 from stereo_vo_ros.estimation.motion import TransferModel, velocity_from_transform  # noqa: E402
 from stereo_vo_ros.evaluation import metrics  # noqa: E402
+from stereo_vo_ros.io import open_sequence  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import StereoFrame, TrackingStatus  # noqa: E402
 from stereo_vo_ros.synthetic import (PHOTOMETRIC, RIG_ERROR, SequenceSpec,  # noqa: E402

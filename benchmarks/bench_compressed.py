@@ -40,11 +40,11 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from stereo_vo_ros.config import Config  # noqa: E402
+from stereo_vo_ros.evaluation import metrics  # noqa: E402
 from stereo_vo_ros.io import open_sequence  # noqa: E402
 from stereo_vo_ros.io.compressed import compress_grey, grey_from_compressed  # noqa: E402
 from stereo_vo_ros.io.rosbag import BagTopics, RosbagSequence  # noqa: E402
 from stereo_vo_ros.io.rosbag import write_stereo_bag  # noqa: E402
-from stereo_vo_ros.evaluation import metrics  # noqa: E402
 from stereo_vo_ros.offline import run_frames  # noqa: E402
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer  # noqa: E402
 

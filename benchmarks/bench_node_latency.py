@@ -62,15 +62,15 @@ from rclpy.node import Node
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stereo_vo_ros.io.compressed import compress_grey, grey_from_compressed  # noqa: E402
 from stereo_vo_ros.estimation.camera import StereoCalibration  # noqa: E402
+from stereo_vo_ros.io.compressed import compress_grey, grey_from_compressed  # noqa: E402
 from stereo_vo_ros.pipeline import StereoOdometry  # noqa: E402
 from stereo_vo_ros.records import StereoFrame  # noqa: E402
 from stereo_vo_ros.ros import conversions as conv  # noqa: E402
 from stereo_vo_ros.ros import dds  # noqa: E402
 from stereo_vo_ros.ros.player import StereoPairPublisher  # noqa: E402
 from stereo_vo_ros.ros.process import (  # noqa: E402
-    spinning, start_node, stop_node, with_pythonpath)
+                                       spinning, start_node, stop_node, with_pythonpath)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DOMAIN_ID = 1 + (os.getpid() * 13 + 5) % 200

@@ -13,8 +13,8 @@ import re
 import numpy as np
 import pytest
 from stereo_vo_ros import cli
-from stereo_vo_ros.io import write_kitti, write_stereo_bag
 from stereo_vo_ros.evaluation.trajectory import read_kitti, read_tum
+from stereo_vo_ros.io import write_kitti, write_stereo_bag
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 import yaml
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from stereo_vo_ros.config import Config
-from stereo_vo_ros.io.correspondences import (CorrespondenceData, estimate_trajectory,
-                                                    iter_estimates, load_npz, OPTIONAL_KEYS,
-                                                    REQUIRED_KEYS, save_npz)
 from stereo_vo_ros.errors import DatasetError
+from stereo_vo_ros.io.correspondences import (CorrespondenceData, estimate_trajectory,
+                                              iter_estimates, load_npz, OPTIONAL_KEYS,
+                                              REQUIRED_KEYS, save_npz)
 from stereo_vo_ros.synthetic.simulation import paper_config, simulate_sequence, SimulationSpec
 
 KEYS = ('prev_left', 'prev_right', 'cur_left', 'cur_right')

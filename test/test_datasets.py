@@ -14,11 +14,11 @@ from rosbags.rosbag2 import Writer
 from rosbags.typesys import get_typestore, Stores
 
 from stereo_vo_ros.config import Config
-from stereo_vo_ros.io import (BagTopics, detect_format, KittiSequence, open_sequence,
-                                    render_to_bag, render_to_kitti, RosbagSequence,
-                                    SyntheticSequence, write_kitti, write_stereo_bag)
-from stereo_vo_ros.io.rosbag import buffer_from_grey, ENCODINGS, grey_from_buffer
 from stereo_vo_ros.errors import DatasetError, ImageError
+from stereo_vo_ros.io import (BagTopics, detect_format, KittiSequence, open_sequence,
+                              render_to_bag, render_to_kitti, RosbagSequence,
+                              SyntheticSequence, write_kitti, write_stereo_bag)
+from stereo_vo_ros.io.rosbag import buffer_from_grey, ENCODINGS, grey_from_buffer
 from stereo_vo_ros.records import StereoFrame
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 

@@ -9,7 +9,6 @@ from scipy.spatial.transform import Rotation
 
 from stereo_vo_ros import cli
 from stereo_vo_ros.config import Config
-from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.estimation.camera import StereoCalibration
 from stereo_vo_ros.estimation.estimator import MotionEstimator
 from stereo_vo_ros.estimation.motion import transform_from_velocity
@@ -18,6 +17,7 @@ from stereo_vo_ros.estimation.rig_calibration import (apply_homography, camera_i
                                                       refined_camera_infos, rig_jacobian,
                                                       RigCalibrator, right_homography,
                                                       row_coupling)
+from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer

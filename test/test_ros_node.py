@@ -30,9 +30,9 @@ from rosbags.typesys import get_typestore, Stores
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 from stereo_vo_ros.config import Config, to_yaml
-from stereo_vo_ros.io.rosbag import RosbagSequence, write_stereo_bag
 from stereo_vo_ros.errors import ConfigError
 from stereo_vo_ros.evaluation.metrics import end_point_drift
+from stereo_vo_ros.io.rosbag import RosbagSequence, write_stereo_bag
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.ros import conversions as conv
 from stereo_vo_ros.ros.node import StereoVONode

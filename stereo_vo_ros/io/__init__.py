@@ -1,3 +1,4 @@
+# noqa: A005 (the subpackage of data input/output; absolute imports keep the standard io)
 """
 Stereo sequences on disk: one small class per format, chosen by ``open_sequence``.
 

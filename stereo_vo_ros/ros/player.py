@@ -33,8 +33,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from .conversions import camera_info_from_matrices, image_from_numpy, time_from_nanoseconds
-from ..io.compressed import compress_grey
 from ..errors import DatasetError
+from ..io.compressed import compress_grey
 
 
 class StereoPairPublisher:

@@ -56,10 +56,10 @@ import math
 import numpy as np
 
 from ..config import Config
-from ..io.correspondences import CorrespondenceData, iter_estimates
 from ..errors import ConfigError
 from ..estimation.camera import StereoCalibration
 from ..estimation.motion import transform_from_velocity
+from ..io.correspondences import CorrespondenceData, iter_estimates
 from ..records import TrackingStatus
 
 LOG = logging.getLogger(__name__)
