@@ -95,3 +95,12 @@ def test_yaml_comments_are_wrapped():
         assert not too_long, f'{len(too_long)} lines longer than 120 characters: {too_long[:3]}'
     comments = [line for line in to_yaml().splitlines() if line.lstrip().startswith('#')]
     assert max(map(len, comments)) <= config_mod.YAML_COMMENT_WIDTH
+
+
+def test_public_api_imports_from_the_package():
+    """``from stereo_vo_ros import Config, StereoOdometry`` is the documented entry point."""
+    from stereo_vo_ros import Config as PublicConfig, StereoOdometry, TrackingStatus
+    odometry = StereoOdometry(PublicConfig())
+    assert PublicConfig is Config
+    assert odometry.status is TrackingStatus.INITIALIZING
+    assert odometry.T_world_cam.tolist() == [[float(i == j) for j in range(4)] for i in range(4)]
