@@ -20,9 +20,10 @@ from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfi
 from stereo_vo_ros.errors import ConfigError, ImageError
 from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
+from stereo_vo_ros.tracking.detection import detect_corners
 from stereo_vo_ros.tracking.klt_checks import (bicircular_error, CheckSet, disparity_constraint,
                                                eigen_ratio, flow_edge_ratio, gradient_matrix)
-from stereo_vo_ros.tracking.tracker import detect_corners, StereoTracker
+from stereo_vo_ros.tracking.tracker import StereoTracker
 
 W, H = 400, 300
 FOCAL = 300.0

@@ -33,22 +33,22 @@ of the calibration (identical to raw pixels for rectified input).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import logging
-import math
 import time
 from typing import Callable
 
 import cv2
 import numpy as np
 
-from . import bucketing
 from .adaptive_threshold import bicircular_threshold
 from .affine_klt import refine_affine
+from .detection import bucket_ids, detect_corners, plan_detection
 from .klt_checks import (bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint,
                          disparity_in_range, eigen_ratio, flow_edge_ratio, lk_pass,
                          round_trip_error)
 from .photometric import PhotometricMatcher
+from .stats import CHECKS, PASSES, STAGES, TrackerStats, TrackResult  # noqa: F401 (re-exported)
 from ..config import BucketingConfig, TrackerConfig
 from ..errors import ConfigError, ImageError
 from ..estimation.camera import StereoCalibration
@@ -64,109 +64,11 @@ REVERSE_PYRAMID_LEVELS = 0
 #: A new corner closer than this to a tracked feature starts its stereo search at that
 #: feature's disparity with ``predicted_pyramid_levels`` (pixels).
 NEIGHBOUR_RADIUS_PX = 80.0
-#: Detection searches buckets whose free slots add up to this many times the features needed.
-DETECTION_OVERSAMPLING = 1.0
 #: A searched bucket that gave no new feature is skipped for this many frames (sky, road).
 BARREN_BUCKET_FRAMES = 8
-#: Timed stages, keys of ``TrackerStats.timings_ms`` (plus ``total``).
-STAGES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
-          'detection', 'affine', 'photometric')
-#: KLT passes, keys of ``TrackerStats.pass_points``.
-PASSES = ('temporal_fwd', 'temporal_bwd', 'stereo_fwd', 'stereo_bwd', 'bicircular',
-          'new_stereo_fwd', 'new_stereo_bwd')
-#: Checks, keys of ``TrackerStats.failed``: aperture (edge-like KLT window), flow_aperture
-#: (edge-like along the predicted flow), KLT failure of the temporal pass, forward-backward,
-#: KLT failure of the stereo pass, disparity constraint, disparity range, left-right, KLT
-#: failure or threshold of the bi-circular check.
-CHECKS = ('aperture', 'flow_aperture', 'temporal', 'fb', 'stereo', 'dc', 'disparity', 'lr',
-          'bc')
-
 #: Motion prior: (prev_left_ideal (N, 2), prev_right_ideal (N, 2)) -> (cur_left_pred (N, 2),
 #: cur_right_pred (N, 2)), all float64 ideal pixels.
 Prior = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-
-
-@dataclass
-class TrackerStats:
-    """
-    Per-frame statistics of the tracker.
-
-    Attributes
-    ----------
-    initialized : bool
-        True if this frame (re)started tracking (first frame, reset, new calibration or size).
-    n_previous : int
-        Features alive at t1.
-    n_tracked : int
-        Quadruples returned (features that passed every check).
-    n_detected : int
-        Corners detected in this frame.
-    n_added : int
-        Detected corners that found a stereo match and were added.
-    n_features : int
-        Features alive after this frame (tracked + added).
-    failed : dict
-        Features removed per check (keys: ``CHECKS``).
-    loss : int
-        Features lost before the bi-circular check (``loss`` of eq. 8).
-    maxtrack : int
-        Age of the oldest feature at the bi-circular check (frames, ``maxtrack`` of eq. 8).
-    delta_d_px : float
-        Bi-circular threshold used (pixels); NaN when the check did not run.
-    used_prior : bool
-        True if the motion prior gave the initial flow.
-    timings_ms : dict
-        Milliseconds per stage (keys: ``STAGES`` and ``total``).
-    pass_points : dict
-        Points entering each KLT pass of the tracked features (keys: ``STAGES`` without
-        ``detection``) and of the new corners (``new_stereo_fwd``, ``new_stereo_bwd``).
-
-    """
-
-    initialized: bool = False
-    n_previous: int = 0
-    n_tracked: int = 0
-    n_detected: int = 0
-    n_added: int = 0
-    n_features: int = 0
-    failed: dict = field(default_factory=lambda: dict.fromkeys(CHECKS, 0))
-    loss: int = 0
-    maxtrack: int = 0
-    delta_d_px: float = math.nan
-    used_prior: bool = False
-    timings_ms: dict = field(default_factory=lambda: dict.fromkeys(STAGES + ('total',), 0.0))
-    pass_points: dict = field(default_factory=lambda: dict.fromkeys(PASSES, 0))
-
-
-@dataclass
-class TrackResult:
-    """
-    Output of one tracked stereo pair.
-
-    Attributes
-    ----------
-    correspondences : Correspondences
-        Quadruples in ideal (undistorted) pixels, float64, with feature ids and ages (frames
-        tracked, >= 1); empty on an initialising frame.
-    raw : Correspondences
-        The same rows in raw pixels of the images as given (for drawing).
-    features_left_raw, features_right_raw : np.ndarray
-        (M, 2) float64 raw pixel positions of every feature alive after this frame in the
-        current left and right image (tracked and newly detected).
-    feature_ids, feature_ages : np.ndarray
-        (M,) int64 ids and ages of those features (age 0: detected in this frame).
-    stats : TrackerStats
-        Counts, thresholds and timings of this frame.
-
-    """
-
-    correspondences: Correspondences
-    raw: Correspondences
-    features_left_raw: np.ndarray
-    features_right_raw: np.ndarray
-    feature_ids: np.ndarray
-    feature_ages: np.ndarray
-    stats: TrackerStats
 
 
 @dataclass
@@ -225,203 +127,6 @@ def _as_grey_u8(img: np.ndarray, name: str, bits: int) -> tuple[np.ndarray, int]
         bits = max(bits, 8, peak.bit_length())
         return cv2.convertScaleAbs(img, alpha=255.0 / (2 ** bits - 1)), bits
     raise ImageError(f'{name} image must be uint8 or uint16, got {img.dtype}')
-
-
-def plan_detection(existing: np.ndarray, need: int, size: tuple[int, int],
-                   bcfg: BucketingConfig, blocked: np.ndarray | None = None) -> np.ndarray:
-    """
-    Choose the buckets to search for new corners.
-
-    The buckets below their quota (``bcfg.max_per_bucket``) that are not ``blocked`` are taken
-    emptiest first (ties in a fixed scattered order, not row by row) until their free slots
-    reach ``DETECTION_OVERSAMPLING * need``, so the detection cost follows the number of
-    features to replace. Without existing features every bucket is searched.
-
-    Parameters
-    ----------
-    existing : np.ndarray
-        (N, 2) float pixel positions of the tracked features.
-    need : int
-        Number of features to add.
-    size : tuple
-        Image (width, height) in pixels.
-    bcfg : BucketingConfig
-        The bucketing grid.
-    blocked : np.ndarray or None
-        (rows, cols) bool buckets to skip (recently found empty); ignored when there are no
-        existing features.
-
-    Returns
-    -------
-    np.ndarray
-        (rows, cols) bool chosen buckets.
-
-    """
-    occ = bucketing.occupancy(existing, size, bcfg)
-    free = np.clip(bcfg.max_per_bucket - occ, 0, None).ravel()
-    chosen = np.zeros(free.size, bool)
-    if len(existing) == 0:
-        chosen[free > 0] = True
-        return chosen.reshape(occ.shape)
-    if blocked is not None:
-        free = np.where(blocked.ravel(), 0, free)
-    scatter = np.random.default_rng(0).permutation(free.size)
-    order = np.lexsort((scatter, -free))
-    order = order[free[order] > 0]
-    cum = np.cumsum(free[order])
-    count = int(np.searchsorted(cum, DETECTION_OVERSAMPLING * need, side='left')) + 1
-    chosen[order[:count]] = True
-    return chosen.reshape(occ.shape)
-
-
-def _regions(chosen: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
-             ) -> tuple[list[tuple[int, int, int, int]], list[int]]:
-    """
-    Rectangles (x0, y0, x1, y1) of horizontal runs of chosen buckets (pixels, end exclusive).
-
-    Returns the rectangles and the number of buckets in each.
-    """
-    w, h = size
-    if not bcfg.enabled:
-        return [(0, 0, w, h)], [1]
-    m = bcfg.roi_margin_px
-    x0, y0, x1, y1 = m, m, w - m, h - m
-    if x1 <= x0 or y1 <= y0:
-        x0, y0, x1, y1 = 0, 0, w, h
-    xe = x0 + (x1 - x0) * np.arange(bcfg.cols + 1) / bcfg.cols
-    ye = y0 + (y1 - y0) * np.arange(bcfg.rows + 1) / bcfg.rows
-    rects, counts = [], []
-    for r in np.flatnonzero(chosen.any(axis=1)):
-        edges = np.diff(np.concatenate([[0], chosen[r].astype(np.int8), [0]]))
-        for c0, c1 in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-            rects.append((int(math.floor(xe[c0])), int(math.floor(ye[r])),
-                          int(math.ceil(xe[c1])), int(math.ceil(ye[r + 1]))))
-            counts.append(int(c1 - c0))
-    return rects, counts
-
-
-def _bucket_ids(points: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
-                ) -> np.ndarray:
-    """(N,) int64 bucket indices of points inside the region of interest."""
-    idx = bucketing.bucket_index(points, size, bcfg)
-    return idx[idx >= 0]
-
-
-def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float) -> np.ndarray:
-    """
-    (H, W) uint8 mask: 255 on pixels at least ``radius`` from every point, 0 near them.
-
-    Filled discs drawn with OpenCV (a distance transform of the whole image costs ten times
-    more); the disc radius is rounded up, so the mask errs on the side of keeping away.
-    """
-    free = np.full(shape, 255, np.uint8)
-    r = int(math.ceil(radius))
-    h, w = shape
-    for x, y in np.round(points).astype(np.int64):
-        if -r <= x < w + r and -r <= y < h + r:
-            cv2.circle(free, (int(x), int(y)), r, 0, -1)
-    return free
-
-
-def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: TrackerConfig,
-                   bcfg: BucketingConfig, chosen: np.ndarray | None = None,
-                   flow: Callable[[np.ndarray], np.ndarray] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Detect Shi-Tomasi corners only where features are missing.
-
-    Detection runs on crops of the ``chosen`` buckets (whole image with bucketing disabled),
-    masked to stay ``cfg.min_distance_px`` away from the existing features; the candidates are
-    spread with ``bucketing.select`` (at most ``bcfg.max_per_bucket`` per bucket, counting the
-    existing features) and ordered round-robin over the buckets (best corner of every bucket
-    first).
-
-    Parameters
-    ----------
-    img : np.ndarray
-        (H, W) uint8 grey image.
-    existing : np.ndarray
-        (N, 2) float raw pixel positions of the features already tracked in ``img``.
-    need : int
-        Maximum number of corners to return.
-    cfg, bcfg : TrackerConfig, BucketingConfig
-        Detector and bucketing settings.
-    chosen : np.ndarray or None
-        (rows, cols) bool buckets to search; None: ``plan_detection`` without blocked buckets.
-    flow : callable or None
-        ``flow(points) -> (M, 2)`` expected displacement (pixels) of (M, 2) raw positions in
-        the next frame. With it, candidates whose ``flow_edge_ratio`` over the KLT window is
-        below ``cfg.min_flow_edge_ratio`` are dropped before the per-bucket choice, so the next
-        corner of their bucket takes the slot.
-
-    Returns
-    -------
-    corners : np.ndarray
-        (M, 2) float32 raw pixel positions, M <= need, best first.
-    found : np.ndarray
-        (rows * cols,) int64 corners found per bucket before the ``need`` cut (empty with
-        bucketing disabled).
-
-    """
-    h, w = img.shape
-    n_buckets = bcfg.rows * bcfg.cols if bcfg.enabled else 0
-    empty = np.zeros((0, 2), np.float32), np.zeros(n_buckets, np.int64)
-    if need <= 0:
-        return empty
-    existing = np.asarray(existing, np.float64).reshape(-1, 2)
-    if bcfg.enabled and chosen is None:
-        chosen = plan_detection(existing, need, (w, h), bcfg)
-    pad = cfg.block_size // 2 + 2
-    free = _free_mask(existing, (h, w), cfg.min_distance_px) if len(existing) else None
-    found, ranks = [], []
-    for (x0, y0, x1, y1), count in zip(*_regions(chosen, (w, h), bcfg)):
-        cx0, cy0 = max(x0 - pad, 0), max(y0 - pad, 0)
-        cx1, cy1 = min(x1 + pad, w), min(y1 + pad, h)
-        mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
-        mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
-        if free is not None:
-            mask &= free[cy0:cy1, cx0:cx1]
-        limit = need if not bcfg.enabled else 2 * count * bcfg.max_per_bucket
-        corners = cv2.goodFeaturesToTrack(
-            img[cy0:cy1, cx0:cx1], maxCorners=int(limit), qualityLevel=cfg.quality_level,
-            minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
-        if corners is None or len(corners) == 0:
-            continue
-        found.append(corners.reshape(-1, 2) + np.array([cx0, cy0], np.float32))
-        ranks.append(np.arange(len(corners)))
-    if not found:
-        return empty
-    cand = np.concatenate(found).astype(np.float32)
-    rank = np.concatenate(ranks).astype(np.float64)
-    if flow is not None and cfg.min_flow_edge_ratio > 0:
-        expected = np.asarray(flow(cand.astype(np.float64)), np.float64).reshape(-1, 2)
-        keep = flow_edge_ratio(img, cand, expected, cfg.win_size_px) >= cfg.min_flow_edge_ratio
-        cand, rank = cand[keep], rank[keep]
-        if not len(cand):
-            return empty
-    if not bcfg.enabled:
-        return cand[np.argsort(rank, kind='stable')][:need], empty[1]
-    # Per-bucket quota: existing features first, then candidates by their rank in their crop.
-    allpts = np.vstack([existing, cand.astype(np.float64)])
-    prio = np.concatenate([np.full(len(existing), 1e12), -rank])
-    keep = bucketing.select(allpts, (w, h), bcfg, prio)[len(existing):]
-    cand, rank = cand[keep], rank[keep]
-    # Candidates of neighbouring crops may be too close: drop the worse of such pairs.
-    if len(cand) > 1:
-        d = np.linalg.norm(cand[:, None, :] - cand[None, :, :], axis=2)
-        order = np.arange(len(cand))
-        worse = (rank[None, :] > rank[:, None]) | (
-            (rank[None, :] == rank[:, None]) & (order[None, :] > order[:, None]))
-        clash = ((d < cfg.min_distance_px) & worse).any(axis=0)
-        cand, rank = cand[~clash], rank[~clash]
-    idx = bucketing.bucket_index(cand, (w, h), bcfg)
-    per_bucket = np.bincount(idx[idx >= 0], minlength=n_buckets).astype(np.int64)
-    # Round robin over buckets: the best corner of every bucket, then the second, ...
-    order = np.lexsort((rank, idx))
-    sorted_idx = idx[order]
-    in_bucket = np.arange(len(order)) - np.searchsorted(sorted_idx, sorted_idx, side='left')
-    round_robin = order[np.lexsort((rank[order], in_bucket))]
-    return cand[round_robin][:need], per_bucket
 
 
 class StereoTracker:
@@ -877,8 +582,8 @@ class StereoTracker:
         stats.n_added = n
         if chosen is not None and n:
             # Buckets whose corners all failed the stereo match are skipped for a while.
-            tried = np.bincount(_bucket_ids(submitted, size, bcfg), minlength=chosen.size)
-            kept = np.bincount(_bucket_ids(pts[ok], size, bcfg), minlength=chosen.size)
+            tried = np.bincount(bucket_ids(submitted, size, bcfg), minlength=chosen.size)
+            kept = np.bincount(bucket_ids(pts[ok], size, bcfg), minlength=chosen.size)
             self._barren[((tried > 0) & (kept == 0)).reshape(chosen.shape)] = \
                 BARREN_BUCKET_FRAMES
         if not n:
