@@ -12,9 +12,19 @@ The core subpackages (``tracking``, ``estimation``, ``road``, ``evaluation``, ``
 ``io``) and the pipeline import no ROS package; the ROS adapter lives in ``stereo_vo_ros.ros``.
 """
 
-from .config import Config
-from .pipeline import StereoOdometry
-from .records import OdometryResult, StereoFrame, TrackingStatus
+from importlib import import_module
+from typing import Any
 
 __all__ = ['Config', 'OdometryResult', 'StereoFrame', 'StereoOdometry', 'TrackingStatus']
 __version__ = '0.1.0'
+
+#: Public names and their modules, imported on first use (``python -m stereo_vo_ros.config``
+#: and the light modules do not load the pipeline).
+_PUBLIC = {'Config': 'config', 'StereoOdometry': 'pipeline', 'OdometryResult': 'records',
+           'StereoFrame': 'records', 'TrackingStatus': 'records'}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _PUBLIC:
+        return getattr(import_module(f'.{_PUBLIC[name]}', __name__), name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

@@ -28,6 +28,7 @@ from .estimation.camera import StereoCalibration
 from .estimation.estimator import MotionEstimator
 from .estimation.motion import rotation_from_rates, TransferModel, transform_from_velocity
 from .estimation.rig_calibration import apply_homography, RigCalibrator
+from .parallel import auto_threads, Workers
 from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatus
 from .road.ground_plane import fit_ground_plane, road_speed, triangulate
 from .road.road_alignment import RoadAligner, RoadImages, RoadPlane
@@ -101,7 +102,9 @@ class StereoOdometry:
 
     def __init__(self, config: Config | None = None) -> None:
         self.config = config or Config()
-        self.tracker = StereoTracker(self.config.tracker, self.config.bucketing)
+        #: Worker threads of every stage (``pipeline.threads``).
+        self.workers = Workers(self.config.pipeline.threads)
+        self.tracker = StereoTracker(self.config.tracker, self.config.bucketing, self.workers)
         self.estimator = MotionEstimator(self.config)
         self.road = RoadAligner(self.config.road, self.config.ransac)
         #: Online estimate of the rig's error (``rig``); kept by ``reset()``: it belongs to the
@@ -145,6 +148,13 @@ class StereoOdometry:
         self.estimator.config = config
         self.road.cfg, self.road.ransac = config.road, config.ransac
         self.rig.cfg = config.rig
+        if auto_threads(config.pipeline.threads) != self.workers.threads:
+            self.workers.close()
+            self.workers = self.tracker.workers = Workers(config.pipeline.threads)
+
+    def close(self) -> None:
+        """Stop the worker threads; the pipeline then runs in the caller's thread only."""
+        self.workers.close()
 
     @property
     def status(self) -> TrackingStatus:

@@ -408,12 +408,14 @@ class StereoVONode(Node):
                                      f'pair\n{traceback.format_exc()}')
 
     def destroy_node(self) -> None:
-        """Stop the worker thread, then destroy the node."""
+        """Stop the worker thread and the pipeline's threads, then destroy the node."""
         with self._slot_lock:
             self._stopping = True
             self._slot_lock.notify()
         if self._worker.is_alive() and self._worker is not threading.current_thread():
             self._worker.join(timeout=10.0)
+        if not self._worker.is_alive():
+            self._pipeline.close()  # its worker threads (pipeline.threads)
         logging.getLogger('stereo_vo_ros').removeHandler(self._log_bridge)
         super().destroy_node()
 

@@ -52,6 +52,7 @@ from .stats import CHECKS, PASSES, STAGES, TrackerStats, TrackResult  # noqa: F4
 from ..config import BucketingConfig, TrackerConfig
 from ..errors import ConfigError, ImageError
 from ..estimation.camera import StereoCalibration
+from ..parallel import inline, Workers
 from ..records import Correspondences
 
 logger = logging.getLogger(__name__)
@@ -148,8 +149,12 @@ class StereoTracker:
     """
 
     def __init__(self, tracker_cfg: TrackerConfig | None = None,
-                 bucketing_cfg: BucketingConfig | None = None) -> None:
+                 bucketing_cfg: BucketingConfig | None = None,
+                 workers: Workers | None = None) -> None:
         self.configure(tracker_cfg or TrackerConfig(), bucketing_cfg or BucketingConfig())
+        #: Threads for independent pieces (detection crops, affine refinement of the points,
+        #: the two stereo passes of new corners); the results do not depend on their number.
+        self.workers = workers or inline()
         self._next_id = 0
         self.reset()
 
@@ -505,9 +510,13 @@ class StereoTracker:
         t = CLOCK()
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
         win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
-        out, _ = refine_affine(self._float(img_from), self._float(img_to), pts_from, pts_to,
-                               win, cfg.affine_iterations, horizontal=horizontal,
-                               step_px=cfg.affine_step_px)
+        src, dst = self._float(img_from), self._float(img_to)
+
+        def rows(sel: slice) -> tuple[np.ndarray, np.ndarray]:
+            return refine_affine(src, dst, pts_from[sel], pts_to[sel], win,
+                                 cfg.affine_iterations, horizontal=horizontal,
+                                 step_px=cfg.affine_step_px)
+        out, _ = self.workers.split_points(rows, len(pts_from))
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 
@@ -529,7 +538,7 @@ class StereoTracker:
             chosen = plan_detection(f.left_raw, need, size, bcfg, self._barren > 0)
             self._barren = np.maximum(self._barren - 1, 0)
         pts, found = detect_corners(left, f.left_raw, need, cfg, bcfg, chosen,
-                                    self._expected_flow(prior, calib))
+                                    self._expected_flow(prior, calib), self.workers)
         stats.timings_ms['detection'] = (CLOCK() - t) * 1e3
         stats.n_detected = len(pts)
         if chosen is not None and len(pts):
@@ -558,11 +567,13 @@ class StereoTracker:
         stats.pass_points['new_stereo_fwd'] = len(pts)
         right_m, spent = self._matched(left, right, None, None, stats)
         t += spent
-        for sel, levels in ((guided, cfg.predicted_pyramid_levels),
-                            (~guided, cfg.pyramid_levels)):
-            if sel.any():
-                pr[sel], ok[sel] = lk_pass(left, right_m, pts[sel], guess[sel], levels, win,
-                                           iters)
+        passes = [(sel, levels) for sel, levels in (
+            (guided, cfg.predicted_pyramid_levels), (~guided, cfg.pyramid_levels)) if sel.any()]
+        results = self.workers.each(
+            lambda job: lk_pass(left, right_m, pts[job[0]], guess[job[0]], job[1], win, iters),
+            passes)
+        for (sel, _), (tracked, good) in zip(passes, results):
+            pr[sel], ok[sel] = tracked, good
         pts, pr = pts[ok], pr[ok]
         il, ir = calib.undistort_left(pts), calib.undistort_right(pr)
         ok = disparity_in_range(calib, il, ir, cfg.min_disparity_px, cfg.max_disparity_px)
