@@ -33,7 +33,7 @@ from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatu
 from .road.ground_plane import fit_ground_plane, road_speed, triangulate
 from .road.road_alignment import RoadAligner, RoadImages, RoadPlane
 from .road.vehicle_motion import lateral_constraint
-from .tracking.tracker import StereoTracker
+from .tracking.tracker import PendingTrack, StereoTracker
 
 LOG = logging.getLogger(__name__)
 
@@ -191,6 +191,7 @@ class StereoOdometry:
         if prev_stamp is None:
             self._track(frame, None, timings)
             self._road_step(frame, 0.0, False, timings)
+            self._join_tracker(timings)
             self._rig_prev_left = self.tracker.previous_left()
             self._commit(stamp, calib, TrackingStatus.INITIALIZING)
             return self._result(stamp, TrackingStatus.INITIALIZING, t_start, timings,
@@ -210,7 +211,7 @@ class StereoOdometry:
             prior = self._road_prior(frame, calib, dt)
             timings['road_search'] = (time.perf_counter() - t0) * 1e3
         track = self._track(frame, prior, timings)
-        corr = track.correspondences if track is not None else None
+        corr = track.correspondences
         t0 = time.perf_counter()
         if corr is None or len(corr) == 0:
             est = None
@@ -255,6 +256,7 @@ class StereoOdometry:
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
         vehicle_fused = ok and self._vehicle_step(dt)
         road_fused = self._road_step(frame, dt, ok and not calib_changed, timings)
+        self._join_tracker(timings)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._rig_prev_left = self.tracker.previous_left()
         self._commit(stamp, calib, status)
@@ -403,16 +405,25 @@ class StereoOdometry:
             return pred[:, :2], pred[:, 2:]
         return predict
 
-    def _track(self, frame: StereoFrame, prior, timings: dict[str, float]):
+    def _track(self, frame: StereoFrame, prior, timings: dict[str, float]) -> PendingTrack:
+        """Track the pair; its replenishment runs on while the caller estimates the motion."""
         t0 = time.perf_counter()
-        track = self.tracker.track(frame.left, frame.right, frame.calibration, prior=prior)
+        track = self.tracker.track_async(frame.left, frame.right, frame.calibration,
+                                         prior=prior)
         timings['track'] = (time.perf_counter() - t0) * 1e3
-        stats = getattr(track, 'stats', None)
-        stage_ms = getattr(stats, 'timings_ms', None) if stats is not None else None
-        if isinstance(stage_ms, dict):
-            for key, value in stage_ms.items():
-                timings[f'track.{key}'] = float(value)
         return track
+
+    def _join_tracker(self, timings: dict[str, float]) -> None:
+        """Wait for the tracker's replenishment; record its stage times."""
+        t0 = time.perf_counter()
+        track = self.tracker.join()
+        if track is None:
+            return
+        # ``track``: the caller's time in the tracker (tracking plus any wait for the
+        # replenishment); ``track.*``: the tracker's stages, ``track.total`` its whole time.
+        timings['track'] = timings.get('track', 0.0) + (time.perf_counter() - t0) * 1e3
+        for key, value in track.stats.timings_ms.items():
+            timings[f'track.{key}'] = float(value)
 
     def _integrate(self, dt: float, lost: bool) -> None:
         """Move the pose by the filter's velocity and propagate the covariance."""

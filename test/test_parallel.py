@@ -1,8 +1,8 @@
 """
-The pipeline's worker threads: order, splits, and results that do not depend on the count.
+The pipeline's threads: background work joins, and results do not depend on the count.
 
 The speed they buy is measured by ``benchmarks/bench_speed.py``, not here: these tests check
-that work handed to the threads comes back complete, in order, and bit-identical.
+that work handed to the background thread comes back, errors included, and bit-identical.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 
 from stereo_vo_ros import Config, StereoOdometry
 from stereo_vo_ros.config import ConfigError
-from stereo_vo_ros.parallel import auto_threads, MIN_POINTS_PER_THREAD, Workers
+from stereo_vo_ros.parallel import auto_threads, Workers
 from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
 
 
@@ -24,36 +24,27 @@ def urban_frames():
     return list(SyntheticSequence(SequenceSpec.preset('urban', n_frames=30, seed=3)))
 
 
-def test_each_keeps_the_order_and_uses_the_threads():
-    workers = Workers(3, set_opencv=False)
+def test_submit_runs_in_the_background_and_joins():
+    workers = Workers(2, set_opencv=False)
     try:
-        names = set()
+        names = []
+        job = workers.submit(lambda x: names.append(threading.current_thread().name) or x * 2, 21)
+        assert job.result() == 42
+        assert names and names[0] != threading.current_thread().name
 
-        def work(x: int) -> int:
-            names.add(threading.current_thread().name)
-            return x * x
-        assert workers.each(work, range(17)) == [x * x for x in range(17)]
-        assert workers.each(work, []) == []
-        assert len(names) >= 2  # the caller and at least one worker took items
+        def fail():
+            raise ValueError('boom')
+        with pytest.raises(ValueError):
+            workers.submit(fail).result()
     finally:
         workers.close()
     assert workers.threads == 1
-    assert workers.each(lambda x: -x, [1, 2]) == [-1, -2]  # closed: inline
-
-
-def test_chunks_cover_every_row_once_at_block_multiples():
-    workers = Workers(2, set_opencv=False)
-    try:
-        for n in (0, 1, 31, 32, 63, 64, 65, 97, 200, 1001):
-            parts = workers.chunks(n)
-            assert np.array_equal(np.concatenate([np.arange(n)[s] for s in parts]),
-                                  np.arange(n))
-            assert len(parts) <= workers.threads
-            assert all(s.start % MIN_POINTS_PER_THREAD == 0 for s in parts)
-        out = workers.split_points(lambda rows: (np.arange(200)[rows] * 2,), 200)
-        assert np.array_equal(out[0], np.arange(200) * 2)
-    finally:
-        workers.close()
+    # Closed or single-threaded: inline, the error still raised by result(), not by submit.
+    assert workers.submit(lambda: threading.current_thread().name).result() == \
+        threading.current_thread().name
+    late = workers.submit(fail)
+    with pytest.raises(ValueError):
+        late.result()
 
 
 def test_auto_threads_and_config_range():

@@ -18,7 +18,6 @@ import numpy as np
 from . import bucketing
 from .klt_checks import flow_edge_ratio
 from ..config import BucketingConfig, TrackerConfig
-from ..parallel import inline, Workers
 
 #: Detection searches buckets whose free slots add up to this many times the features needed.
 DETECTION_OVERSAMPLING = 1.0
@@ -122,8 +121,8 @@ def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float) -> np.
 
 def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: TrackerConfig,
                    bcfg: BucketingConfig, chosen: np.ndarray | None = None,
-                   flow: Callable[[np.ndarray], np.ndarray] | None = None,
-                   workers: Workers | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   flow: Callable[[np.ndarray], np.ndarray] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """
     Detect Shi-Tomasi corners only where features are missing.
 
@@ -150,8 +149,6 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
         the next frame. With it, candidates whose ``flow_edge_ratio`` over the KLT window is
         below ``cfg.min_flow_edge_ratio`` are dropped before the per-bucket choice, so the next
         corner of their bucket takes the slot.
-    workers : Workers or None
-        Threads over which the crops are searched (None: the caller's thread).
 
     Returns
     -------
@@ -172,9 +169,8 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
         chosen = plan_detection(existing, need, (w, h), bcfg)
     pad = cfg.block_size // 2 + 2
     free = _free_mask(existing, (h, w), cfg.min_distance_px) if len(existing) else None
-
-    def search(region: tuple[tuple[int, int, int, int], int]) -> np.ndarray | None:
-        (x0, y0, x1, y1), count = region
+    found, ranks = [], []
+    for (x0, y0, x1, y1), count in zip(*_regions(chosen, (w, h), bcfg)):
         cx0, cy0 = max(x0 - pad, 0), max(y0 - pad, 0)
         cx1, cy1 = min(x1 + pad, w), min(y1 + pad, h)
         mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
@@ -186,13 +182,9 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
             img[cy0:cy1, cx0:cx1], maxCorners=int(limit), qualityLevel=cfg.quality_level,
             minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
         if corners is None or len(corners) == 0:
-            return None
-        return corners.reshape(-1, 2) + np.array([cx0, cy0], np.float32)
-
-    # The crops are independent: searched concurrently, joined in their order.
-    regions = list(zip(*_regions(chosen, (w, h), bcfg)))
-    found = [c for c in (workers or inline()).each(search, regions) if c is not None]
-    ranks = [np.arange(len(c)) for c in found]
+            continue
+        found.append(corners.reshape(-1, 2) + np.array([cx0, cy0], np.float32))
+        ranks.append(np.arange(len(corners)))
     if not found:
         return empty
     cand = np.concatenate(found).astype(np.float32)

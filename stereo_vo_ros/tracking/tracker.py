@@ -130,6 +130,30 @@ def _as_grey_u8(img: np.ndarray, name: str, bits: int) -> tuple[np.ndarray, int]
     raise ImageError(f'{name} image must be uint8 or uint16, got {img.dtype}')
 
 
+@dataclass
+class PendingTrack:
+    """
+    A tracked pair whose replenishment may still run (``StereoTracker.track_async``).
+
+    Attributes
+    ----------
+    correspondences, raw : Correspondences
+        The quadruples in ideal and raw pixels, final.
+    stats : TrackerStats
+        The pair's statistics; complete once ``result()`` returned.
+
+    """
+
+    correspondences: Correspondences
+    raw: Correspondences
+    stats: TrackerStats
+    _job: object
+
+    def result(self) -> TrackResult:
+        """Wait for the replenishment and return the whole ``TrackResult``."""
+        return self._job.result()
+
+
 class StereoTracker:
     """
     Stereo KLT tracker (Huang et al.): one call per stereo pair.
@@ -152,8 +176,7 @@ class StereoTracker:
                  bucketing_cfg: BucketingConfig | None = None,
                  workers: Workers | None = None) -> None:
         self.configure(tracker_cfg or TrackerConfig(), bucketing_cfg or BucketingConfig())
-        #: Threads for independent pieces (detection crops, affine refinement of the points,
-        #: the two stereo passes of new corners); the results do not depend on their number.
+        #: Where the replenishment runs (``track_async``); inline by default.
         self.workers = workers or inline()
         self._next_id = 0
         self.reset()
@@ -180,6 +203,9 @@ class StereoTracker:
 
     def reset(self) -> None:
         """Forget every feature and the previous images; the next pair re-initialises."""
+        if getattr(self, '_pending', None) is not None:
+            self._pending.result()
+        self._pending = None
         self._calib: StereoCalibration | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
         self._floats: list[tuple[np.ndarray, np.ndarray]] = []
@@ -191,6 +217,7 @@ class StereoTracker:
     @property
     def num_features(self) -> int:
         """Return the number of features alive after the last pair."""
+        self.join()
         return len(self._feats)
 
     # -- public API ---------------------------------------------------------------------
@@ -204,6 +231,7 @@ class StereoTracker:
 
     def feature_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Return ideal left and right pixels (N, 2) of the features alive after the last pair."""
+        self.join()
         f = self._feats
         return f.left_ideal.astype(np.float64), f.right_ideal.astype(np.float64)
 
@@ -215,6 +243,21 @@ class StereoTracker:
               prior: Prior | None = None) -> TrackResult:
         """
         Track the features into a new stereo pair and replenish them.
+
+        The same as ``track_async(...).result()``; see there.
+        """
+        return self.track_async(left, right, calib, prior).result()
+
+    def track_async(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
+                    prior: Prior | None = None) -> 'PendingTrack':
+        """
+        Track the features into a new stereo pair; replenish them on a worker thread.
+
+        Returns as soon as the quadruples are known; the detection and stereo matching of new
+        corners continue on ``workers`` (inline with one thread). The tracker's feature state
+        (``feature_points``, ``num_features``) is complete once ``PendingTrack.result()`` or
+        ``join()`` returned; the next call joins first. The images (``last_pair``,
+        ``previous_left``) are the new pair's on return.
 
         Parameters
         ----------
@@ -230,9 +273,10 @@ class StereoTracker:
 
         Returns
         -------
-        TrackResult
-            Quadruples (empty on the first frame, after ``reset`` or when the calibration or
-            the image size changed), raw positions and statistics.
+        PendingTrack
+            The quadruples (empty on the first frame, after ``reset`` or when the calibration
+            or the image size changed) at once; ``result()`` gives the ``TrackResult`` with
+            the features after replenishment and the statistics.
 
         Raises
         ------
@@ -241,6 +285,7 @@ class StereoTracker:
             calibration's image size.
 
         """
+        self.join()
         t_start = CLOCK()
         # float32 images of the refinement: only the previous pair's (owned by the tracker, never
         # written) carry over; the caller may reuse its buffers for the next pair.
@@ -268,16 +313,33 @@ class StereoTracker:
             corr, raw = _empty_correspondences(), _empty_correspondences()
         else:
             corr, raw = self._track_existing(left8, right8, calib, prior, stats)
-        self._replenish(left8, right8, calib, stats, prior if stats.used_prior else None)
         # Own copies: the caller may reuse its image buffers.
         self._prev = (left8.copy() if np.may_share_memory(left8, left) else left8,
                       right8.copy() if np.may_share_memory(right8, right) else right8)
+        # Replenishment needs nothing the caller computes from the quadruples: it runs on a
+        # worker thread (inline with one thread) while the caller estimates the motion.
+        self._pending = self.workers.submit(
+            self._replenish_and_finish, left8, right8, calib, stats,
+            prior if stats.used_prior else None, corr, raw, t_start)
+        return PendingTrack(corr, raw, stats, self._pending)
+
+    def _replenish_and_finish(self, left8: np.ndarray, right8: np.ndarray,
+                              calib: StereoCalibration, stats: TrackerStats,
+                              prior: Prior | None, corr: Correspondences, raw: Correspondences,
+                              t_start: float) -> TrackResult:
+        """Replenish the features of the pair just tracked and return the whole result."""
+        self._replenish(left8, right8, calib, stats, prior)
         self._photo.carry(((left8, self._prev[0]), (right8, self._prev[1])))
         stats.n_features = len(self._feats)
         stats.timings_ms['total'] = (CLOCK() - t_start) * 1e3
         f = self._feats
         return TrackResult(corr, raw, f.left_raw.astype(np.float64),
                            f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
+
+    def join(self) -> TrackResult | None:
+        """Wait for the replenishment of the last pair; return its result (None if none)."""
+        pending, self._pending = self._pending, None
+        return None if pending is None else pending.result()
 
     # -- stages -----------------------------------------------------------------------
     def _predict(self, prior: Prior, calib: StereoCalibration
@@ -510,13 +572,9 @@ class StereoTracker:
         t = CLOCK()
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
         win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
-        src, dst = self._float(img_from), self._float(img_to)
-
-        def rows(sel: slice) -> tuple[np.ndarray, np.ndarray]:
-            return refine_affine(src, dst, pts_from[sel], pts_to[sel], win,
-                                 cfg.affine_iterations, horizontal=horizontal,
-                                 step_px=cfg.affine_step_px)
-        out, _ = self.workers.split_points(rows, len(pts_from))
+        out, _ = refine_affine(self._float(img_from), self._float(img_to), pts_from, pts_to,
+                               win, cfg.affine_iterations, horizontal=horizontal,
+                               step_px=cfg.affine_step_px)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 
@@ -538,7 +596,7 @@ class StereoTracker:
             chosen = plan_detection(f.left_raw, need, size, bcfg, self._barren > 0)
             self._barren = np.maximum(self._barren - 1, 0)
         pts, found = detect_corners(left, f.left_raw, need, cfg, bcfg, chosen,
-                                    self._expected_flow(prior, calib), self.workers)
+                                    self._expected_flow(prior, calib))
         stats.timings_ms['detection'] = (CLOCK() - t) * 1e3
         stats.n_detected = len(pts)
         if chosen is not None and len(pts):
@@ -567,13 +625,11 @@ class StereoTracker:
         stats.pass_points['new_stereo_fwd'] = len(pts)
         right_m, spent = self._matched(left, right, None, None, stats)
         t += spent
-        passes = [(sel, levels) for sel, levels in (
-            (guided, cfg.predicted_pyramid_levels), (~guided, cfg.pyramid_levels)) if sel.any()]
-        results = self.workers.each(
-            lambda job: lk_pass(left, right_m, pts[job[0]], guess[job[0]], job[1], win, iters),
-            passes)
-        for (sel, _), (tracked, good) in zip(passes, results):
-            pr[sel], ok[sel] = tracked, good
+        for sel, levels in ((guided, cfg.predicted_pyramid_levels),
+                            (~guided, cfg.pyramid_levels)):
+            if sel.any():
+                pr[sel], ok[sel] = lk_pass(left, right_m, pts[sel], guess[sel], levels, win,
+                                           iters)
         pts, pr = pts[ok], pr[ok]
         il, ir = calib.undistort_left(pts), calib.undistort_right(pr)
         ok = disparity_in_range(calib, il, ir, cfg.min_disparity_px, cfg.max_disparity_px)
