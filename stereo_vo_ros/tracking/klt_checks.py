@@ -160,10 +160,6 @@ def inside_image(pts: np.ndarray, size: tuple[int, int], border_px: float = BORD
                 & (pts[:, 1] <= h - 1 - border_px))
 
 
-#: Kernel of the plain central difference (grey levels per pixel).
-_CENTRAL_DIFFERENCE = np.array([[-0.5, 0.0, 0.5]], np.float32)
-
-
 def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: bool = False
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
@@ -196,20 +192,38 @@ def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: b
     offs = np.arange(-half - 1, half + 2)  # the window and a one-pixel border
     ok = np.all(np.isfinite(pts), axis=1)
     centre = np.where(ok[:, None], np.round(pts), 0.0).astype(np.int64)
-    ys = np.clip(centre[:, 1, None] + offs, 0, h - 1)
-    xs = np.clip(centre[:, 0, None] + offs, 0, w - 1)
     n, side = len(pts), len(offs)
-    # The patches stacked into one tall image for OpenCV's filters; a patch's border rows,
-    # which take their neighbours' pixels, are left out of the sums.
-    tall = np.ascontiguousarray(img[ys[:, :, None], xs[:, None, :]]).reshape(n * side, side)
+    # Patches whose window lies inside the image are rows of a sliding-window view (one
+    # small copy); the others take their pixels one by one, the border replicated.
+    r = half + 1
+    inside = np.all((centre >= r) & (centre < np.array([w, h]) - r), axis=1)
+    patches = np.empty((n, side, side), img.dtype)
+    if inside.any():
+        windows = np.lib.stride_tricks.sliding_window_view(img, (side, side))
+        patches[inside] = windows[centre[inside, 1] - r, centre[inside, 0] - r]
+    if not inside.all():
+        c = centre[~inside]
+        ys = np.clip(c[:, 1, None] + offs, 0, h - 1)
+        xs = np.clip(c[:, 0, None] + offs, 0, w - 1)
+        patches[~inside] = img[ys[:, :, None], xs[:, None, :]]
+    # Gradients inside each patch (its border pixels only feed the stencils): sums of grey
+    # levels, exact in float32, then scaled by a power of two, so exactly what OpenCV's
+    # float filters give.
+    p = patches.astype(np.float32)
+    gx = np.zeros((n, side, side), np.float32)
+    gy = np.zeros((n, side, side), np.float32)
+    dx = p[:, :, 2:] - p[:, :, :-2]  # (n, side, side - 2)
+    dy = p[:, 2:, :] - p[:, :-2, :]  # (n, side - 2, side)
     if sobel:
-        gx = cv2.Sobel(tall, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        gy = cv2.Sobel(tall, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        # 3x3 Sobel: the central difference smoothed with (1, 2, 1) across, scaled by 1/8.
+        gx[:, 1:-1, 1:-1] = (dx[:, :-2] + 2 * dx[:, 1:-1] + dx[:, 2:]) * np.float32(0.125)
+        gy[:, 1:-1, 1:-1] = (dy[:, :, :-2] + 2 * dy[:, :, 1:-1] + dy[:, :, 2:]) * \
+            np.float32(0.125)
     else:
-        gx = cv2.filter2D(tall, cv2.CV_32F, _CENTRAL_DIFFERENCE)
-        gy = cv2.filter2D(tall, cv2.CV_32F, _CENTRAL_DIFFERENCE.T)
-    gx = gx.reshape(n, side, side)[:, 1:-1, 1:-1]
-    gy = gy.reshape(n, side, side)[:, 1:-1, 1:-1]
+        gx[:, :, 1:-1] = dx * np.float32(0.5)
+        gy[:, 1:-1, :] = dy * np.float32(0.5)
+    gx = gx[:, 1:-1, 1:-1]
+    gy = gy[:, 1:-1, 1:-1]
     sums = [np.where(ok, np.einsum('nij,nij->n', p, q).astype(np.float64), 0.0)
             for p, q in ((gx, gx), (gx, gy), (gy, gy))]
     return sums[0], sums[1], sums[2], ok
