@@ -245,8 +245,8 @@ class MotionEstimator:
         candidates = watched = np.flatnonzero(finite)
         streak = cfg.ransac.max_outlier_streak
         if streak > 0 and cfg.ransac.enabled and corr.ids.size and self.outlier_streak:
-            left_out = np.fromiter((self.outlier_streak.get(int(i), 0) >= streak
-                                    for i in corr.ids[candidates]), bool, candidates.size)
+            out_ids = [i for i, n in self.outlier_streak.items() if n >= streak]
+            left_out = np.isin(corr.ids[candidates], out_ids)
             if np.count_nonzero(~left_out) >= max(cfg.pipeline.min_features, 4):
                 candidates = candidates[~left_out]  # else too few would be left: keep all
         if candidates.size and cfg.bucketing.enabled:
@@ -400,14 +400,15 @@ class MotionEstimator:
         (6, 6) and iterations of the last update.
         """
         fcfg = self.config.filter
-        h = BatchedMeasurement(model, model.X[inl][None])
-        z_in, var = z[inl].reshape(1, -1), noise_var[inl]
+        idx = np.flatnonzero(inl)
+        h = BatchedMeasurement(model, index=idx[None])
+        z_in, var = z[idx].reshape(1, -1), noise_var[idx]
         out = self.filter.update(prior_mean[None], prior_cov, h, z_in, var.reshape(1, -1))
         rounds = fcfg.robust_rounds if fcfg.robust_loss == 'cauchy' else 0
         for _ in range(rounds):
             if not np.all(np.isfinite(out.mean[0])):
                 break  # the caller reports the non-finite update
-            err = reprojection_errors(model, out.mean, z, scale)[0][inl]
+            err = reprojection_errors(model, out.mean, z, scale, idx)[0]
             sigma = max(residual_sigma(err), MIN_ROBUST_SIGMA_PX)
             weight = 1.0 / (1.0 + (err / (fcfg.robust_scale_sigmas * sigma)) ** 2)
             out = self.filter.update(prior_mean[None], prior_cov, h, z_in,
@@ -435,11 +436,10 @@ class MotionEstimator:
                                   np.hstack([corr.cur_left, corr.cur_right]))[0]
         old = self.outlier_streak
         streak = {}
-        for fid, e in zip(corr.ids.tolist(), err.tolist()):
-            if not e < gate * OUTLIER_STREAK_FACTOR:  # NaN and inf count as outliers
-                streak[fid] = old.get(fid, 0) + 1
-            elif e >= gate:
-                streak[fid] = old.get(fid, 0)
+        clear = ~(err < gate * OUTLIER_STREAK_FACTOR)  # NaN and inf count as outliers
+        kept = clear | (err >= gate)  # the others end their streak
+        for fid, is_clear in zip(corr.ids[kept].tolist(), clear[kept].tolist()):
+            streak[fid] = old.get(fid, 0) + is_clear
         self.outlier_streak = streak
 
     def _fail(self, status: TrackingStatus, dt: float, used: np.ndarray, hypotheses: int,

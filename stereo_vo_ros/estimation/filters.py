@@ -32,6 +32,17 @@ linearisation at ``x_i``)::
 For the sigma-point filters this is the statistical-linear-regression form of the UKF update;
 it neglects the regression-residual term of the innovation covariance, which is what keeps the
 update in 6x6 information form.
+
+Implementation of the sigma-point filters (ISPKF, UKF): the regression Jacobian is
+``H_i = D_i^T L_i^-1`` with ``D_i`` (6 x M) the half differences of h across the sigma pairs, so
+``H_i^T R^-1 H_i = L_i^-T (D_i R^-1 D_i^T) L_i^-1`` and ``H_i`` is never formed. The next
+iterate's factor ``L_{i+1} = chol(Lambda_i^-1) sqrt(n + lambda)`` comes from one Cholesky
+factorisation of ``Lambda_i`` with rows and columns reversed (``J Lambda J = C C^T`` gives
+``Lambda = U U^T`` with the upper triangular ``U = J C J``, and ``chol(Lambda^-1) = U^-T``), which
+also gives ``L_{i+1}^-1 = U^T / sqrt(n + lambda)`` and the step ``Lambda_i^-1 b``. A measurement
+function can offer ``sigma_linearize`` (see :class:`~.ransac.BatchedMeasurement`): the first
+iteration of every problem with the same prior uses the same sigma points, whose predictions it
+computes once for all problems (RANSAC hypotheses, the final update and its reweighted rounds).
 """
 
 from __future__ import annotations
@@ -59,7 +70,7 @@ class FilterOutput:
     Attributes
     ----------
     mean : (B, 6) posterior state (m/s, rad/s).
-    cov : (B, 6, 6) posterior covariance.
+    cov : (B, 6, 6) posterior covariance (None when the update was asked not to compute it).
     iterations : (B,) int iterations used.
     converged : (B,) bool True where the termination threshold was met.
 
@@ -77,35 +88,80 @@ class Filter(Protocol):
     name: str
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
-               noise_var: float | np.ndarray, max_iterations: int | None = None
-               ) -> FilterOutput:
+               noise_var: float | np.ndarray, max_iterations: int | None = None,
+               need_cov: bool = True) -> FilterOutput:
         """Update B priors ``(mean (B,6), cov (B,6,6))`` with measurements ``z (B,M)``."""
 
 
-def _linearize_sigma(x: np.ndarray, L: np.ndarray, h: MeasurementFn, w0: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def sigma_points(x: np.ndarray, L: np.ndarray, w0: float) -> np.ndarray:
     """
-    Propagate x +/- columns of L through h; return (z_bar (B,M), H (B,M,6)).
+    Return the sigma points (..., S, 6) of states x (..., 6) and offsets L (..., 6, 6).
 
-    ``L`` (B, 6, 6) holds the sigma-point offsets as columns. ``H`` is the regression
-    Jacobian ``P_xz^T P^-1``, which for a symmetric sigma set is the central difference of h
-    along the columns of L mapped back through ``L^-1``. ``w0`` is the weight of the centre
-    point in the mean (the other 2n points share ``1 - w0`` equally).
+    ``x + L[:, j]`` for j = 0..5, then ``x - L[:, j]``, after ``x`` itself when ``w0 != 0``
+    (S = 12 or 13). x and L broadcast against each other.
     """
-    offsets = np.swapaxes(L, 1, 2)  # (B, 6, 6): row j = column j of L
-    pts = np.concatenate([x[:, None, :] + offsets, x[:, None, :] - offsets], axis=1)
+    offsets = np.swapaxes(L, -1, -2)  # row j = column j of L
+    x = x[..., None, :]
+    parts = [x + offsets, x - offsets]
     if w0 != 0.0:
-        pts = np.concatenate([x[:, None, :], pts], axis=1)
-    Z = h(pts)  # (B, S, M)
-    if w0 != 0.0:
-        z0, Z = Z[:, 0], Z[:, 1:]
-    plus, minus = Z[:, :STATE_DIM], Z[:, STATE_DIM:]
-    z_bar = (plus + minus).sum(axis=1) * ((1.0 - w0) / (2 * STATE_DIM))
-    if w0 != 0.0:
-        z_bar = z_bar + w0 * z0
-    D = 0.5 * (plus - minus)  # (B, 6, M)
-    H = np.swapaxes(D, 1, 2) @ np.linalg.inv(L)
-    return z_bar, H
+        parts.insert(0, np.broadcast_to(x, parts[0].shape[:-2] + (1, STATE_DIM)))
+    return np.concatenate(parts, axis=-2)
+
+
+def sigma_points_t(x: np.ndarray, L: np.ndarray, w0: float) -> np.ndarray:
+    """
+    :func:`sigma_points` transposed: (6, B, S) for x (B, 6) and L (B, 6, 6) or (6, 6).
+
+    Component i of sigma point s of problem b is ``[i, b, s]`` (the layout of
+    ``TransferModel.predict_planes``). With x (6,) and L (6, 6): (6, S).
+    """
+    xt = x.T[..., None]  # (6, B, 1) or (6, 1)
+    if L.ndim == 3:
+        Lt = L.transpose(1, 0, 2)  # [i, b, j] = L[b, i, j]
+    elif x.ndim == 2:  # one L for all problems
+        Lt = L[:, None, :]
+    else:
+        Lt = L
+    c = 1 if w0 != 0.0 else 0
+    pts = np.empty((STATE_DIM,) + x.shape[:-1] + (2 * STATE_DIM + c,))
+    if c:
+        pts[..., 0] = xt[..., 0]
+    np.add(xt, Lt, out=pts[..., c:c + STATE_DIM])
+    np.subtract(xt, Lt, out=pts[..., c + STATE_DIM:])
+    return pts
+
+
+_MOMENTS: dict = {}
+
+
+def _moment_matrix(S: int, w0: float) -> np.ndarray:
+    """(7, S): rows 0-5 the half differences of the sigma pairs, row 6 the weighted mean."""
+    key = (S, w0)
+    if key not in _MOMENTS:
+        c = S - 2 * STATE_DIM  # 1 with the centre point first
+        m = np.zeros((STATE_DIM + 1, S))
+        idx = np.arange(STATE_DIM)
+        m[idx, c + idx] = 0.5
+        m[idx, c + STATE_DIM + idx] = -0.5
+        m[STATE_DIM, c:] = (1.0 - w0) / (2 * STATE_DIM)
+        if c:
+            m[STATE_DIM, 0] = w0
+        _MOMENTS[key] = m
+    return _MOMENTS[key]
+
+
+def sigma_moments(Z: np.ndarray, w0: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Mean and half differences of the propagated sigma points.
+
+    ``Z`` (..., S, M) holds h at :func:`sigma_points` (same order). Returns ``z_bar``
+    (..., M), the weighted mean (the centre has weight ``w0``, the other 2n points share
+    ``1 - w0`` equally), and ``D`` (..., 6, M), row j the half difference
+    ``(h(x + L_j) - h(x - L_j)) / 2``: the regression Jacobian is ``D^T L^-1``. Both come from
+    one matrix product over the sigma points.
+    """
+    r = _moment_matrix(Z.shape[-2], w0) @ Z  # (..., 7, M)
+    return r[..., STATE_DIM, :], r[..., :STATE_DIM, :]
 
 
 def _linearize_point(x: np.ndarray, h: MeasurementFn) -> tuple[np.ndarray, np.ndarray]:
@@ -156,6 +212,36 @@ def _information_step(x_prior: np.ndarray, info_prior: np.ndarray, x_i: np.ndarr
     return x_prior + dx, lam
 
 
+def _reversed_cholesky(lam: np.ndarray) -> np.ndarray:
+    """
+    Upper triangular ``U`` (..., 6, 6) with ``lam = U U^T`` (lam symmetric positive definite).
+
+    The lower Cholesky factor of the reversed matrix, reversed: ``chol(lam^-1) = U^-T``.
+    Raises LinAlgError when a matrix is not numerically positive definite.
+    """
+    return np.linalg.cholesky(lam[..., ::-1, ::-1])[..., ::-1, ::-1]
+
+
+def _upper_inverse(U: np.ndarray) -> np.ndarray:
+    """
+    Inverses of upper triangular matrices (B, n, n).
+
+    Back substitution row by row, vectorised over the batch: for many small matrices it costs
+    a fraction of ``np.linalg.inv`` (an LU factorisation per matrix); a few go to LAPACK.
+    """
+    if U.shape[0] <= 8:
+        return np.linalg.inv(U)
+    n = U.shape[-1]
+    V = np.zeros(U.shape)
+    d = 1.0 / np.diagonal(U, axis1=-2, axis2=-1)  # (B, n)
+    V[:, n - 1, n - 1] = d[:, n - 1]
+    for i in range(n - 2, -1, -1):
+        V[:, i, i] = d[:, i]
+        row = (U[:, i:i + 1, i + 1:] @ V[:, i + 1:, i + 1:])[:, 0]  # (B, n - 1 - i)
+        V[:, i, i + 1:] = row * -d[:, i:i + 1]
+    return V
+
+
 class _BaseFilter:
     name = 'base'
     iterated = False
@@ -175,8 +261,8 @@ class _BaseFilter:
                                   [np.deg2rad(cfg.threshold_angular_deg)] * 3)
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
-               noise_var: float | np.ndarray, max_iterations: int | None = None
-               ) -> FilterOutput:
+               noise_var: float | np.ndarray, max_iterations: int | None = None,
+               need_cov: bool = True) -> FilterOutput:
         """
         Update B priors with measurements; see the module docstring for the equations.
 
@@ -187,7 +273,9 @@ class _BaseFilter:
         cov : np.ndarray
             (B, 6, 6) or (6, 6) prior covariance.
         h : MeasurementFn
-            Measurement function, states (B, S, 6) -> (B, S, M) pixels.
+            Measurement function, states (B, S, 6) -> (B, S, M) pixels. The sigma-point
+            filters use its ``sigma_linearize(x, L, w0, shared)`` when it has one (see
+            :class:`~.ransac.BatchedMeasurement`).
         z : np.ndarray
             (B, M) measured pixels (non-finite entries are ignored).
         noise_var : float or np.ndarray
@@ -195,6 +283,9 @@ class _BaseFilter:
             diagonal either way).
         max_iterations : int, optional
             Overrides the configured maximum for iterated filters.
+        need_cov : bool
+            False: the posterior covariance is not computed (``cov`` is None), e.g. for RANSAC
+            hypotheses.
 
         Returns
         -------
@@ -202,14 +293,21 @@ class _BaseFilter:
 
         """
         mean = np.asarray(mean, np.float64)
-        B = mean.shape[0]
-        cov = np.broadcast_to(np.asarray(cov, np.float64), (B, STATE_DIM, STATE_DIM))
-        info_prior = np.linalg.inv(cov)
+        cov = np.asarray(cov, np.float64)
+        z = np.asarray(z, np.float64)
         r_inv = np.broadcast_to(1.0 / np.asarray(noise_var, np.float64), z.shape)
-        scale = np.sqrt(STATE_DIM + self.lam)
-        if self.sigma:
-            L = safe_cholesky(cov) * scale
         max_it = (max_iterations or self.cfg.max_iterations) if self.iterated else 1
+        if self.sigma:
+            return self._update_sigma(mean, cov, h, z, r_inv, max_it, need_cov)
+        return self._update_point(mean, cov, h, z, r_inv, max_it)
+
+    def _update_point(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
+                      r_inv: np.ndarray, max_it: int) -> FilterOutput:
+        """EKF / IEKF: linearised at each iterate by central differences."""
+        B = mean.shape[0]
+        cov = np.broadcast_to(cov, (B, STATE_DIM, STATE_DIM))
+        info_prior = np.broadcast_to(np.linalg.inv(cov[0]), cov.shape) if _all_same(cov) \
+            else np.linalg.inv(cov)
         x = mean.copy()
         lam = info_prior
         iterations = np.zeros(B, np.int64)
@@ -217,18 +315,13 @@ class _BaseFilter:
         active = np.arange(B)
         for _ in range(max_it):
             xa = x[active]
-            if self.sigma:
-                z_bar, H = _linearize_sigma(xa, L[active], _sub(h, active, B), self.w0)
-            else:
-                z_bar, H = _linearize_point(xa, _sub(h, active, B))
+            z_bar, H = _linearize_point(xa, _sub(h, active, B))
             x_new, lam_a = _information_step(mean[active], info_prior[active], xa, z_bar, H,
                                              z[active], r_inv[active])
             if lam is info_prior:
                 lam = info_prior.copy()
             lam[active] = lam_a
             iterations[active] += 1
-            if self.sigma and self.posterior_spread:
-                L[active] = safe_cholesky(np.linalg.inv(lam_a)) * scale
             done = np.all(np.abs(x_new - xa) < self.threshold, axis=1)
             x[active] = x_new
             converged[active[done]] = True
@@ -238,6 +331,97 @@ class _BaseFilter:
         cov_post = np.linalg.inv(lam)
         cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
         return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
+
+    def _update_sigma(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
+                      r_inv: np.ndarray, max_it: int, need_cov: bool) -> FilterOutput:
+        """
+        ISPKF / UKF (see the module docstring).
+
+        All B problems are computed in every iteration (the ones that converged are not
+        updated any more): for small problems that is cheaper than regrouping the batch.
+        """
+        B = mean.shape[0]
+        scale = np.sqrt(STATE_DIM + self.lam)
+        info_prior = np.linalg.inv(cov)  # (6, 6) or (B, 6, 6)
+        L = safe_cholesky(cov) * scale
+        # L^-T, kept contiguous: the stacked matrix products below are fast on contiguous
+        # operands only.
+        L_invT = np.ascontiguousarray(np.swapaxes(np.linalg.inv(L), -1, -2))
+        # The first iteration of problems with one prior shares the sigma points.
+        shared = cov.ndim == 2 and (B == 1 or not np.any(mean != mean[0]))
+        linearize = getattr(h, 'sigma_linearize', None)
+        z_ok = np.isfinite(z)
+        all_z_ok = bool(z_ok.all())
+        r_inv = r_inv[:, None, :]  # (B, 1, M)
+        x = mean
+        lam_post = None
+        iterations = np.zeros(B, np.int64)
+        converged = np.zeros(B, bool)
+        active = np.ones(B, bool)
+        everyone = True  # all problems active
+        for it in range(max_it):
+            if linearize is not None:
+                z_bar, D = linearize(x, L, self.w0, shared)
+            else:
+                z_bar, D = sigma_moments(h(sigma_points(x, L, self.w0)), self.w0)
+            shared = False
+            resid = z - z_bar  # (B, M)
+            if not (all_z_ok and np.isfinite(resid.sum() + D.sum())):
+                # Non-finite predictions are left out (rows of H with a non-finite entry).
+                valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=1)
+                resid = np.where(valid, resid, 0.0)
+                D = np.where(valid[:, None, :], D, 0.0)
+            Ht = L_invT @ D  # (B, 6, M): the transposed regression Jacobian H^T = L^-T D
+            if it > 0:  # linearised about x_i: z_bar_i + H_i (x_prior - x_i)
+                resid -= ((mean - x)[:, None, :] @ Ht)[:, 0]
+            HtR = Ht * r_inv
+            lam = info_prior + HtR @ np.ascontiguousarray(Ht.swapaxes(1, 2))
+            rhs = HtR @ resid[..., None]  # (B, 6, 1)
+            L_new = None
+            if self.posterior_spread and it + 1 < max_it:
+                try:
+                    # Lambda = U U^T with U upper triangular, and chol(Lambda^-1) = U^-T.
+                    U = np.ascontiguousarray(_reversed_cholesky(lam))
+                    U_inv = _upper_inverse(U)
+                    dx = ((U_inv @ rhs).swapaxes(1, 2) @ U_inv)[:, 0]  # U^-T U^-1 rhs
+                    L_new = U_inv.swapaxes(1, 2) * scale
+                    L_invT_new = U / scale
+                except np.linalg.LinAlgError:  # not numerically positive definite
+                    L_new = safe_cholesky(np.linalg.inv(lam)) * scale
+                    L_invT_new = np.ascontiguousarray(np.swapaxes(np.linalg.inv(L_new), 1, 2))
+                    dx = np.linalg.solve(lam, rhs)[..., 0]
+            else:
+                dx = np.linalg.solve(lam, rhs)[..., 0]
+            x_new = mean + dx
+            done = (np.abs(x_new - x) < self.threshold).all(axis=1)
+            iterations += active
+            if everyone:
+                x, lam_post = x_new, lam
+                if L_new is not None:
+                    L, L_invT = L_new, L_invT_new
+                converged = done
+                active = ~done
+            else:
+                x[active] = x_new[active]
+                lam_post[active] = lam[active]
+                if L_new is not None:
+                    L[active] = L_new[active]
+                    L_invT[active] = L_invT_new[active]
+                converged |= active & done
+                active &= ~done
+            if not active.any():
+                break
+            everyone = bool(active.all())
+        cov_post = None
+        if need_cov:
+            cov_post = np.linalg.inv(lam_post)
+            cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
+        return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
+
+
+def _all_same(a: np.ndarray) -> bool:
+    """Whether all entries along the first axis are equal (a broadcast prior)."""
+    return a.shape[0] <= 1 or a.strides[0] == 0 or not np.any(a != a[0])
 
 
 def _sub(h: MeasurementFn, active: np.ndarray, B: int) -> MeasurementFn:

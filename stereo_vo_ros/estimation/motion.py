@@ -19,11 +19,13 @@ left) and (previous left, previous right, current right).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .camera import StereoCalibration
-from .trifocal import (fundamental_from_projections, perpendicular_lines, tensor_basis,
-                       transfer_basis)
+from .trifocal import (fundamental_from_projections, perpendicular_lines_t, tensor_basis,
+                       transfer_basis_t)
 
 
 def rotation_zxy(theta_z: np.ndarray, phi_x: np.ndarray, psi_y: np.ndarray) -> np.ndarray:
@@ -32,16 +34,39 @@ def rotation_zxy(theta_z: np.ndarray, phi_x: np.ndarray, psi_y: np.ndarray) -> n
     cx, sx = np.cos(phi_x), np.sin(phi_x)
     cy, sy = np.cos(psi_y), np.sin(psi_y)
     R = np.empty(np.broadcast(cz, cx, cy).shape + (3, 3))
-    R[..., 0, 0] = cz * cy - sz * sx * sy
-    R[..., 0, 1] = -sz * cx
-    R[..., 0, 2] = cz * sy + sz * sx * cy
-    R[..., 1, 0] = sz * cy + cz * sx * sy
-    R[..., 1, 1] = cz * cx
-    R[..., 1, 2] = sz * sy - cz * sx * cy
-    R[..., 2, 0] = -cx * sy
-    R[..., 2, 1] = sx
-    R[..., 2, 2] = cx * cy
+    for k, value in enumerate(_rotation_entries(cz, sz, cx, sx, cy, sy)):
+        R[..., k // 3, k % 3] = value
     return R
+
+
+def _rotation_entries(cz: np.ndarray, sz: np.ndarray, cx: np.ndarray, sx: np.ndarray,
+                      cy: np.ndarray, sy: np.ndarray) -> tuple:
+    """Return the nine entries of eq. 6, row by row, from the cosines and sines of the angles."""
+    szsx, czsx = sz * sx, cz * sx
+    return (cz * cy - szsx * sy, -sz * cx, cz * sy + szsx * cy,
+            sz * cy + czsx * sy, cz * cx, sz * sy - czsx * cy,
+            -cx * sy, sx, cx * cy)
+
+
+def _transposed_rotation_rows(Rt: np.ndarray, cz: np.ndarray, sz: np.ndarray, cx: np.ndarray,
+                              sx: np.ndarray, cy: np.ndarray, sy: np.ndarray) -> None:
+    """Write ``R^T`` (eq. 6, as :func:`_rotation_entries`) into ``Rt[:3, :3]`` (rows of K)."""
+    szsx, czsx = sz * sx, cz * sx
+    np.multiply(cz, cy, out=Rt[0, 0])
+    Rt[0, 0] -= szsx * sy
+    np.negative(sz, out=Rt[1, 0])
+    Rt[1, 0] *= cx
+    np.multiply(cz, sy, out=Rt[2, 0])
+    Rt[2, 0] += szsx * cy
+    np.multiply(sz, cy, out=Rt[0, 1])
+    Rt[0, 1] += czsx * sy
+    np.multiply(cz, cx, out=Rt[1, 1])
+    np.multiply(sz, sy, out=Rt[2, 1])
+    Rt[2, 1] -= czsx * cy
+    np.negative(cx, out=Rt[0, 2])
+    Rt[0, 2] *= sy
+    Rt[1, 2] = sx
+    np.multiply(cx, cy, out=Rt[2, 2])
 
 
 def rotation_from_rates(omega: np.ndarray, dt: float | np.ndarray) -> np.ndarray:
@@ -75,6 +100,7 @@ def velocity_from_transform(T_prev_cur: np.ndarray, dt: float) -> np.ndarray:
     return np.concatenate([T[:3, 3] / dt, rates_from_rotation(T[:3, :3], dt)])
 
 
+STATE_DIM = 6
 _PAIR_CACHE: dict[int, tuple[StereoCalibration, np.ndarray, np.ndarray]] = {}
 
 
@@ -127,11 +153,19 @@ class TransferModel:
         self.K_right = cur.K_right
         self.R_rl = cur.R_right_left
         self.t_rl = cur.t_right_left
+        # Both current cameras at once: P(y) = [W R^T | o - W R^T t] with W = [K_L; K_R R_rl]
+        # (6, 3) and o = [0; K_R t_rl].
+        self._W = np.vstack([self.K_left, self.K_right @ self.R_rl])
+        self._o = np.concatenate([np.zeros(3), self.K_right @ self.t_rl])
         self.G, self.F = _pair_geometry(calib)
         self.prev_left = np.asarray(prev_left, np.float64)
         self.prev_right = np.asarray(prev_right, np.float64)
-        lines = perpendicular_lines(self.F, prev_left, prev_right)
-        self.X = transfer_basis(self.G, prev_left, lines)  # (N, 4)
+        left_t, right_t = self.prev_left.T, self.prev_right.T
+        lines = perpendicular_lines_t(self.F, left_t, right_t)
+        self.X = transfer_basis_t(self.G, left_t, lines).T  # (N, 4), a transposed view
+        #: Linearisations of h at sigma points shared by many problems, for the filters
+        #: (filled by :class:`~stereo_vo_ros.estimation.ransac.BatchedMeasurement`).
+        self.sigma_cache: dict = {}
 
     def __len__(self) -> int:
         return len(self.X)
@@ -158,14 +192,21 @@ class TransferModel:
         (N, 4) float64 gains (dimensionless), finite (non-finite entries become 1e6).
 
         """
-        base = self.predict(np.asarray(y, np.float64))  # (N, 4)
-        gain = np.zeros_like(base)
-        for side, col in ((0, 0), (0, 1), (1, 0), (1, 1)):
-            pl, pr = self.prev_left.copy(), self.prev_right.copy()
-            (pl if side == 0 else pr)[:, col] += step_px
-            lines = perpendicular_lines(self.F, pl, pr)
-            pert = self.predict(y, transfer_basis(self.G, pl, lines))
-            gain += ((pert - base) / step_px) ** 2
+        n = len(self.X)
+        # The four perturbed copies of the previous pair (u_L, v_L, u_R, v_R moved in turn),
+        # transferred in one pass.
+        left = np.tile(self.prev_left.T, 4)  # (2, 4n)
+        right = np.tile(self.prev_right.T, 4)
+        left[0, :n] += step_px
+        left[1, n:2 * n] += step_px
+        right[0, 2 * n:3 * n] += step_px
+        right[1, 3 * n:] += step_px
+        X = transfer_basis_t(self.G, left, perpendicular_lines_t(self.F, left, right))
+        pred = self.predict_planes(np.asarray(y, np.float64).reshape(1, STATE_DIM),
+                                   np.concatenate([self.X.T, X], axis=1).T)
+        pred = pred.reshape(4, 5, n)  # coordinate, (unperturbed, 4 perturbations), point
+        diff = (pred[:, 1:] - pred[:, :1]) / step_px
+        gain = (diff * diff).sum(axis=1).T
         return np.where(np.isfinite(gain), gain, 1e6)
 
     def cameras(self, y: np.ndarray) -> np.ndarray:
@@ -176,16 +217,40 @@ class TransferModel:
         points of the previous left camera frame to pixels.
         """
         y = np.asarray(y, np.float64)
-        R = rotation_from_rates(y[..., 3:], self.dt)
-        Rt = np.swapaxes(R, -1, -2)
-        M = np.empty(y.shape[:-1] + (6, 4))
-        M[..., :3, :3] = Rt
-        M[..., :3, 3] = -(Rt @ (y[..., :3, None] * self.dt))[..., 0]
-        M[..., 3:, :] = self.R_rl @ M[..., :3, :]
-        M[..., 3:, 3] += self.t_rl
-        M[..., :3, :] = self.K_left @ M[..., :3, :]
-        M[..., 3:, :] = self.K_right @ M[..., 3:, :]
-        return M
+        P = self._camera_planes(y.reshape(-1, STATE_DIM).T)  # (6, 4, K)
+        return P.transpose(2, 0, 1).reshape(y.shape[:-1] + (6, 4))
+
+    def _camera_planes(self, yT: np.ndarray) -> np.ndarray:
+        """
+        Return the cameras of K states given component by component (yT (6, K)).
+
+        P (6, 4, K), ``P[:, :, k]`` the stacked projections of state k (see :meth:`cameras`).
+        ``P = [W R^T | o - W R^T t]``: the trigonometry and the rotation entries run on rows
+        of K values, and one matrix product with W gives all K cameras.
+        """
+        K = yT.shape[1]
+        if K == 1:
+            return self._camera(yT[:, 0])[..., None]
+        a = yT[3:] * self.dt  # phi (about x), psi (about y), theta (about z)
+        c, s = np.cos(a), np.sin(a)
+        Rt = np.empty((3, 4, K))  # [R^T | R^T t] of every state
+        _transposed_rotation_rows(Rt, c[2], s[2], c[0], s[0], c[1], s[1])
+        m = Rt[:, :3] * (yT[:3] * self.dt)  # R^T t = sum_i (R^T)[:, i] t_i
+        np.add(m[:, 0], m[:, 1], out=Rt[:, 3])
+        Rt[:, 3] += m[:, 2]
+        P = (self._W @ Rt.reshape(3, 4 * K)).reshape(6, 4, K)
+        np.subtract(self._o[:, None], P[:, 3], out=P[:, 3])
+        return P
+
+    def _camera(self, y: np.ndarray) -> np.ndarray:
+        """Return the cameras (6, 4) of one state (6,), with scalar trigonometry."""
+        phi, psi, theta = (float(v) * self.dt for v in y[3:])
+        R = np.array(_rotation_entries(math.cos(theta), math.sin(theta), math.cos(phi),
+                                       math.sin(phi), math.cos(psi), math.sin(psi)))
+        P = np.empty((6, 4))  # as _camera_planes
+        np.matmul(self._W, R.reshape(3, 3).T, out=P[:, :3])
+        P[:, 3] = self._o - P[:, :3] @ (y[:3] * self.dt)
+        return P
 
     def predict(self, y: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
         """
@@ -205,16 +270,51 @@ class TransferModel:
         infinity.
 
         """
+        y = np.asarray(y, np.float64)
+        uv = self.predict_planes_t(np.moveaxis(y, -1, 0), X)
+        return np.moveaxis(uv, 0, -1)
+
+    def predict_planes(self, y: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+        """
+        Predict current pixels, one coordinate per plane (the layout the filters use).
+
+        Parameters
+        ----------
+        y : np.ndarray
+            (K, 6) states, or (B, K, 6) with a batched X.
+        X : np.ndarray, optional
+            (N, 4) transfer vectors (default: all of this frame's), or (B, N, 4).
+
+        Returns
+        -------
+        (4, K, N) or (4, B, K, N) float64: ``u_L, v_L, u_R, v_R`` pixels of every point under
+        every state; non-finite where a point maps to infinity.
+
+        """
+        return self.predict_planes_t(np.moveaxis(np.asarray(y, np.float64), -1, 0), X)
+
+    def predict_planes_t(self, yT: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+        """
+        :meth:`predict_planes` for states given component by component: yT (6, ...).
+
+        With X (N, 4): (4, ..., N). With X (B, N, 4), yT is (6, B, K): (4, B, K, N).
+        """
         X = self.X if X is None else X
-        P = self.cameras(y)  # (..., 6, 4)
+        lead = yT.shape[1:]
+        P = self._camera_planes(yT.reshape(STATE_DIM, -1))  # (6, 4, K)
+        XT = X.swapaxes(-1, -2)
+        if not XT.flags.c_contiguous:
+            XT = np.ascontiguousarray(XT)
         if X.ndim == 2:
-            h = P @ X.T  # (..., 6, N)
-        else:  # (B, N, 4) with states (B, S, 6)
-            h = P @ np.swapaxes(X, 1, 2)[:, None]
+            h = P.swapaxes(1, 2) @ XT  # (6, K, N): one matrix product per camera row
+            h = h.reshape((6,) + lead + (X.shape[0],))
+        else:  # each problem b with its own points: (6, B, K, 4) @ (B, 4, N)
+            h = P.reshape((6, 4) + lead).transpose(0, 2, 3, 1) @ XT
+        uv = np.empty((4,) + h.shape[1:])
         with np.errstate(divide='ignore', invalid='ignore'):
-            uv = np.concatenate([h[..., 0:2, :] / h[..., 2:3, :], h[..., 3:5, :] / h[..., 5:6, :]],
-                                axis=-2)  # (..., 4, N)
-        return np.swapaxes(uv, -1, -2)
+            for c, (num, den) in enumerate(((0, 2), (1, 2), (3, 5), (4, 5))):
+                np.divide(h[num], h[den], out=uv[c])
+        return uv
 
 
 def project_current(model: TransferModel, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

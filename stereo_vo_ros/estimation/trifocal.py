@@ -103,11 +103,19 @@ def perpendicular_lines(F: np.ndarray, x_A: np.ndarray, x_B: np.ndarray) -> np.n
     (N, 3) float64 homogeneous lines in image B.
 
     """
-    x_A = np.asarray(x_A, np.float64)
-    x_B = np.asarray(x_B, np.float64)
-    le = x_A @ F[:, :2].T + F[:, 2]  # (N, 3) epipolar lines in B
-    l1, l2 = le[:, 0], le[:, 1]
-    return np.stack([l2, -l1, -x_B[:, 0] * l2 + x_B[:, 1] * l1], axis=1)
+    return perpendicular_lines_t(F, np.asarray(x_A, np.float64).T,
+                                 np.asarray(x_B, np.float64).T).T
+
+
+def perpendicular_lines_t(F: np.ndarray, x_A: np.ndarray, x_B: np.ndarray) -> np.ndarray:
+    """:func:`perpendicular_lines` on transposed arrays: x_A, x_B (2, N) -> lines (3, N)."""
+    l1 = F[0, 0] * x_A[0] + F[0, 1] * x_A[1] + F[0, 2]  # epipolar lines F x_A in B
+    l2 = F[1, 0] * x_A[0] + F[1, 1] * x_A[1] + F[1, 2]
+    out = np.empty((3, x_A.shape[1]))
+    out[0] = l2
+    np.negative(l1, out=out[1])
+    out[2] = x_B[1] * l1 - x_B[0] * l2
+    return out
 
 
 def transfer_points(T: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarray:
@@ -153,9 +161,18 @@ def transfer_basis(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarra
     frame in which the projection matrices are expressed.
 
     """
-    xh = np.hstack([np.asarray(x_A, np.float64), np.ones((len(x_A), 1))])
-    X = np.einsum('ni,nj,ijk->nk', xh, l_B, G)
+    return transfer_basis_t(G, np.asarray(x_A, np.float64).T, np.asarray(l_B, np.float64).T).T
+
+
+def transfer_basis_t(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarray:
+    """:func:`transfer_basis` on transposed arrays: x_A (2, N), l_B (3, N) -> X (4, N)."""
+    # G[i]^T l_B for i = 0, 1, 2 stacked (12, N), then weighted by x_A^i (x_A^2 = 1).
+    lg = np.swapaxes(G, 1, 2).reshape(12, 3) @ l_B
+    X = x_A[0] * lg[0:4]
+    X += x_A[1] * lg[4:8]
+    X += lg[8:12]
     # Fix the arbitrary sign and scale so that the homogeneous part is positive when finite.
-    norm = np.linalg.norm(X, axis=1, keepdims=True)
-    X = X / np.where(norm > 0, norm, 1.0)
-    return X * np.where(X[:, 3:4] < 0, -1.0, 1.0)
+    norm = np.sqrt((X * X).sum(axis=0))
+    X /= np.where(norm > 0, norm, 1.0)
+    X *= np.where(X[3] < 0, -1.0, 1.0)
+    return X
