@@ -90,6 +90,10 @@ def epipolar_corrected(corr: Correspondences, calib_prev: StereoCalibration,
     return Correspondences(prev_left, prev_right, cur_left, cur_right, corr.ids, corr.ages)
 
 
+_ONES8 = np.ones(8)
+#: (4, 2): gain (n, 4) @ it = the sums of the left (u, v) and right (u, v) gains.
+_PAIR_SUMS = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]])
+
 #: Median of |e| for a 2-D error e ~ N(0, s^2 I), in units of s (Rayleigh distribution).
 RAYLEIGH_MEDIAN = np.sqrt(2.0 * np.log(2.0))
 #: Floor of the residual sigma of the robust reweighting (pixels): exact data keeps weight ~1.
@@ -140,6 +144,7 @@ class MotionEstimator:
         self.ground_rng = np.random.default_rng([config.ransac.seed, 1])
         #: Feature id -> consecutive frames as a clear outlier of the accepted motion.
         self.outlier_streak: dict[int, int] = {}
+        self._process_noise: tuple = (None, None)
         self.reset()
 
     # -- state -------------------------------------------------------------------------
@@ -152,8 +157,12 @@ class MotionEstimator:
     def process_noise(self) -> np.ndarray:
         """Q (6, 6): per-frame random walk of the velocities."""
         f = self.config.filter
-        return np.diag([f.velocity_process_noise ** 2] * 3 +
-                       [np.deg2rad(f.angular_process_noise_deg) ** 2] * 3)
+        key = (f.velocity_process_noise, f.angular_process_noise_deg)
+        if self._process_noise[0] != key:  # the parameters can change at run time
+            self._process_noise = (key, np.diag([f.velocity_process_noise ** 2] * 3 +
+                                                [np.deg2rad(f.angular_process_noise_deg) ** 2] *
+                                                3))
+        return self._process_noise[1].copy()
 
     def reset(self, velocity: np.ndarray | None = None) -> None:
         """Forget the motion: zero (or given) velocity with the initial covariance."""
@@ -240,8 +249,9 @@ class MotionEstimator:
         prior_mean, prior_cov = self.predict()
         n_all = len(corr)
         used = np.zeros(n_all, bool)
-        finite = np.all(np.isfinite(np.hstack([corr.prev_left, corr.prev_right, corr.cur_left,
-                                               corr.cur_right])), axis=1) if n_all else used
+        # A row is finite when its sum is (NaN and inf propagate): one product, not 8 columns.
+        finite = np.isfinite(np.hstack([corr.prev_left, corr.prev_right, corr.cur_left,
+                                        corr.cur_right]) @ _ONES8) if n_all else used
         candidates = watched = np.flatnonzero(finite)
         streak = cfg.ransac.max_outlier_streak
         if streak > 0 and cfg.ransac.enabled and corr.ids.size and self.outlier_streak:
@@ -271,8 +281,7 @@ class MotionEstimator:
         else:
             gain = np.zeros_like(z)
         noise_var = sigma2 * (1.0 + gain)  # (n, 4)
-        scale = np.sqrt(1.0 + 0.5 * np.stack([gain[:, 0] + gain[:, 1],
-                                              gain[:, 2] + gain[:, 3]], axis=1))
+        scale = np.sqrt(1.0 + 0.5 * (gain @ _PAIR_SUMS))  # (n, 2): left and right image
         hypotheses = 0
         inl = np.ones(len(candidates), bool)
         gate = cfg.ransac.inlier_threshold_px
@@ -312,7 +321,7 @@ class MotionEstimator:
         used[candidates[inl]] = True
         self.mean, self.cov = mean, cov
         self.fresh = False
-        self._count_outliers(corr.subset(watched), calib, dt, calib_cur, gate)
+        self._count_outliers(corr, watched, calib, dt, calib_cur, gate)
         return MotionEstimate(velocity=mean.copy(), covariance=cov.copy(),
                               T_prev_cur=transform_from_velocity(mean, dt), inliers=used,
                               iterations=iters, status=TrackingStatus.OK, hypotheses=hypotheses)
@@ -415,22 +424,26 @@ class MotionEstimator:
                                      (var / weight[:, None]).reshape(1, -1))
         return out.mean[0], out.cov[0], int(out.iterations[0])
 
-    def _count_outliers(self, corr: Correspondences, calib: StereoCalibration, dt: float,
+    def _count_outliers(self, corr: Correspondences, watched: np.ndarray,
+                        calib: StereoCalibration, dt: float,
                         calib_cur: StereoCalibration | None, gate: float) -> None:
         """
         Update each feature's streak of frames as a clear outlier of the accepted motion.
 
-        Every finite correspondence counts, also those bucketing or an earlier streak left out:
-        a feature whose error (pixels) is above ``OUTLIER_STREAK_FACTOR * gate`` extends its
-        streak, one below ``gate`` ends it, one in between keeps it. Features no longer tracked
-        are forgotten. The errors are not scaled by the previous pair's noise as RANSAC's are:
-        a near vehicle's large scale kept its features in (rendered highway seed 3 locked onto
-        it, 39 % t_rel), and the scale costs 0.5 ms.
+        Every finite correspondence (indices ``watched`` into ``corr``) counts, also those
+        bucketing or an earlier streak left out: a feature whose error (pixels) is above
+        ``OUTLIER_STREAK_FACTOR * gate`` extends its streak, one below ``gate`` ends it, one in
+        between keeps it. Features no longer tracked are forgotten. The errors are not scaled
+        by the previous pair's noise as RANSAC's are: a near vehicle's large scale kept its
+        features in (rendered highway seed 3 locked onto it, 39 % t_rel), and the scale costs
+        0.5 ms.
         """
         cfg = self.config.ransac
-        if cfg.max_outlier_streak <= 0 or not cfg.enabled or not corr.ids.size or not len(corr):
+        if cfg.max_outlier_streak <= 0 or not cfg.enabled or not corr.ids.size or \
+                not watched.size:
             self.outlier_streak = {}
             return
+        corr = corr.subset(watched)
         model = TransferModel(calib, corr.prev_left, corr.prev_right, dt, calib_cur)
         err = reprojection_errors(model, self.mean[None],
                                   np.hstack([corr.cur_left, corr.cur_right]))[0]

@@ -34,15 +34,20 @@ it neglects the regression-residual term of the innovation covariance, which is 
 update in 6x6 information form.
 
 Implementation of the sigma-point filters (ISPKF, UKF): the regression Jacobian is
-``H_i = D_i^T L_i^-1`` with ``D_i`` (6 x M) the half differences of h across the sigma pairs, so
-``H_i^T R^-1 H_i = L_i^-T (D_i R^-1 D_i^T) L_i^-1`` and ``H_i`` is never formed. The next
-iterate's factor ``L_{i+1} = chol(Lambda_i^-1) sqrt(n + lambda)`` comes from one Cholesky
-factorisation of ``Lambda_i`` with rows and columns reversed (``J Lambda J = C C^T`` gives
-``Lambda = U U^T`` with the upper triangular ``U = J C J``, and ``chol(Lambda^-1) = U^-T``), which
-also gives ``L_{i+1}^-1 = U^T / sqrt(n + lambda)`` and the step ``Lambda_i^-1 b``. A measurement
-function can offer ``sigma_linearize`` (see :class:`~.ransac.BatchedMeasurement`): the first
-iteration of every problem with the same prior uses the same sigma points, whose predictions it
-computes once for all problems (RANSAC hypotheses, the final update and its reweighted rounds).
+``H_i = D_i^T L_i^-1`` with ``D_i`` (6 x M) the half differences of h across the sigma pairs
+(mean and differences of all sigma points in one matrix product), so no inverse of ``L_i`` is
+needed once ``L_i^-T`` is known. The next iterate's factor ``L_{i+1} = chol(Lambda_i^-1)
+sqrt(n + lambda)`` comes from one Cholesky factorisation of ``Lambda_i`` with rows and columns
+reversed (``J Lambda J = C C^T`` gives ``Lambda = U U^T`` with the upper triangular
+``U = J C J``, and ``chol(Lambda^-1) = U^-T``): ``L_{i+1}^-T = U / sqrt(n + lambda)`` as it is,
+and ``L_{i+1}`` and the step ``Lambda_i^-1 b = U^-T U^-1 b`` from the triangular inverse of U.
+The prior's information and factors are kept for the next update with the same prior (RANSAC,
+the final update and its robust rounds share it), one problem runs on 2-D arrays with LAPACK
+called directly, and a batch of problems keeps the converged ones in the batch (not updated
+any more) instead of regrouping it. A measurement function can offer ``sigma_linearize`` and
+``measurement_order`` (see :class:`~.ransac.BatchedMeasurement`): the first iteration of every
+problem with the frame's prior uses the same sigma points, whose predictions it computes once
+for all problems.
 """
 
 from __future__ import annotations
@@ -51,6 +56,7 @@ from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import numpy as np
+from scipy.linalg import lapack
 
 from ..config import FilterConfig
 from ..errors import ConfigError
@@ -113,7 +119,7 @@ def sigma_points_t(x: np.ndarray, L: np.ndarray, w0: float) -> np.ndarray:
     :func:`sigma_points` transposed: (6, B, S) for x (B, 6) and L (B, 6, 6) or (6, 6).
 
     Component i of sigma point s of problem b is ``[i, b, s]`` (the layout of
-    ``TransferModel.predict_planes``). With x (6,) and L (6, 6): (6, S).
+    ``TransferModel.predict_stacked``). With x (6,) and L (6, 6): (6, S).
     """
     xt = x.T[..., None]  # (6, B, 1) or (6, 1)
     if L.ndim == 3:
@@ -224,22 +230,53 @@ def _reversed_cholesky(lam: np.ndarray) -> np.ndarray:
 
 def _upper_inverse(U: np.ndarray) -> np.ndarray:
     """
-    Inverses of upper triangular matrices (B, n, n).
+    Inverses of upper triangular matrices (B, 6, 6).
 
-    Back substitution row by row, vectorised over the batch: for many small matrices it costs
-    a fraction of ``np.linalg.inv`` (an LU factorisation per matrix); a few go to LAPACK.
+    In 3 x 3 blocks, ``[[A, C], [0, E]]^-1 = [[A^-1, -A^-1 C E^-1], [0, E^-1]]``, with the
+    triangular 3 x 3 inverses in closed form, vectorised over the batch: for many small
+    matrices a fraction of ``np.linalg.inv`` (an LU factorisation per matrix); a few go to
+    LAPACK.
     """
-    if U.shape[0] <= 8:
+    if U.shape[0] <= 8 or U.shape[-1] != 6:
         return np.linalg.inv(U)
-    n = U.shape[-1]
-    V = np.zeros(U.shape)
-    d = 1.0 / np.diagonal(U, axis1=-2, axis2=-1)  # (B, n)
-    V[:, n - 1, n - 1] = d[:, n - 1]
-    for i in range(n - 2, -1, -1):
-        V[:, i, i] = d[:, i]
-        row = (U[:, i:i + 1, i + 1:] @ V[:, i + 1:, i + 1:])[:, 0]  # (B, n - 1 - i)
-        V[:, i, i + 1:] = row * -d[:, i:i + 1]
+    B = U.shape[0]
+    T = np.stack([U[:, :3, :3], U[:, 3:, 3:]])  # (2, B, 3, 3): A and E
+    a, b, c = T[..., 0, 0], T[..., 0, 1], T[..., 0, 2]
+    d, e, f = T[..., 1, 1], T[..., 1, 2], T[..., 2, 2]
+    ia, id_, if_ = 1.0 / a, 1.0 / d, 1.0 / f
+    Ti = np.zeros(T.shape)
+    Ti[..., 0, 0], Ti[..., 1, 1], Ti[..., 2, 2] = ia, id_, if_
+    Ti[..., 0, 1] = -b * ia * id_
+    Ti[..., 1, 2] = -e * id_ * if_
+    Ti[..., 0, 2] = (b * e - c * d) * ia * id_ * if_
+    V = np.zeros((B, 6, 6))
+    V[:, :3, :3], V[:, 3:, 3:] = Ti
+    V[:, :3, 3:] = -(Ti[0] @ U[:, :3, 3:] @ Ti[1])
     return V
+
+
+_LOWER = np.tril(np.ones((STATE_DIM, STATE_DIM)))
+
+
+def _posterior_factors_one(lam: np.ndarray, rhs: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return the step and the next sigma factors of ONE problem (lam (6, 6), rhs (6,)).
+
+    Returns ``(dx (6,), U_inv, U)`` with ``lam = U U^T`` (U upper triangular), by LAPACK
+    directly (a few microseconds instead of NumPy's batched wrappers). Raises LinAlgError when
+    lam is not numerically positive definite.
+    """
+    C, info = lapack.dpotrf(lam[::-1, ::-1], lower=1)  # J lam J = C C^T
+    if info != 0:
+        raise np.linalg.LinAlgError('not positive definite')
+    C *= _LOWER  # dpotrf leaves the input in the other triangle
+    C_inv, info = lapack.dtrtri(C, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError('singular factor')
+    C_inv *= _LOWER
+    U, U_inv = C[::-1, ::-1], C_inv[::-1, ::-1]  # U = J C J, U^-1 = J C^-1 J
+    return U_inv.T @ (U_inv @ rhs), U_inv, U
 
 
 class _BaseFilter:
@@ -259,6 +296,7 @@ class _BaseFilter:
         self.w0 = self.lam / (n + self.lam)
         self.threshold = np.array([cfg.threshold_velocity] * 3 +
                                   [np.deg2rad(cfg.threshold_angular_deg)] * 3)
+        self._prior_cache = None
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
                noise_var: float | np.ndarray, max_iterations: int | None = None,
@@ -332,6 +370,26 @@ class _BaseFilter:
         cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
         return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
 
+    def _prior_terms(self, cov: np.ndarray, scale: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """
+        Prior information, sigma factor L and L^-T (contiguous) of a prior covariance.
+
+        One (6, 6) covariance is shared by all problems of a frame (RANSAC, the final update
+        and its robust rounds): its terms are kept for the next call with the same matrix.
+        """
+        key = cov.tobytes() if cov.ndim == 2 else None
+        hit = self._prior_cache
+        if key is not None and hit is not None and hit[0] == key and hit[1] == scale:
+            return hit[2]
+        info_prior = np.linalg.inv(cov)  # (6, 6) or (B, 6, 6)
+        L = safe_cholesky(cov) * scale
+        # L^-T, kept contiguous: stacked matrix products are fast on contiguous operands only.
+        L_invT = np.ascontiguousarray(np.swapaxes(np.linalg.inv(L), -1, -2))
+        if key is not None:
+            self._prior_cache = (key, scale, (info_prior, L, L_invT))
+        return info_prior, L, L_invT
+
     def _update_sigma(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
                       r_inv: np.ndarray, max_it: int, need_cov: bool) -> FilterOutput:
         """
@@ -342,14 +400,16 @@ class _BaseFilter:
         """
         B = mean.shape[0]
         scale = np.sqrt(STATE_DIM + self.lam)
-        info_prior = np.linalg.inv(cov)  # (6, 6) or (B, 6, 6)
-        L = safe_cholesky(cov) * scale
-        # L^-T, kept contiguous: the stacked matrix products below are fast on contiguous
-        # operands only.
-        L_invT = np.ascontiguousarray(np.swapaxes(np.linalg.inv(L), -1, -2))
+        info_prior, L, L_invT = self._prior_terms(cov, scale)
         # The first iteration of problems with one prior shares the sigma points.
         shared = cov.ndim == 2 and (B == 1 or not np.any(mean != mean[0]))
         linearize = getattr(h, 'sigma_linearize', None)
+        if linearize is not None:  # its measurements in its own order
+            order = h.measurement_order()
+            z, r_inv = z[:, order], r_inv[:, order]
+        if B == 1 and cov.ndim == 2:
+            return self._update_sigma_one(mean, h, z, r_inv, max_it, need_cov, scale,
+                                          info_prior, L, L_invT, linearize)
         z_ok = np.isfinite(z)
         all_z_ok = bool(z_ok.all())
         r_inv = r_inv[:, None, :]  # (B, 1, M)
@@ -417,6 +477,61 @@ class _BaseFilter:
             cov_post = np.linalg.inv(lam_post)
             cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
         return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
+
+    def _update_sigma_one(self, mean: np.ndarray, h: MeasurementFn, z: np.ndarray,
+                          r_inv: np.ndarray, max_it: int, need_cov: bool, scale: float,
+                          info_prior: np.ndarray, L: np.ndarray, L_invT: np.ndarray,
+                          linearize: Callable | None) -> FilterOutput:
+        """:meth:`_update_sigma` for one problem (B = 1, one prior), on 2-D arrays."""
+        x0 = mean[0]
+        z, r_inv = z[0], r_inv[0]
+        z_ok = np.isfinite(z)
+        all_z_ok = bool(z_ok.all())
+        x = x0
+        converged = False
+        it = 0
+        lam = info_prior
+        for it in range(max_it):
+            if linearize is not None:
+                z_bar, D = linearize(x[None], L, self.w0, it == 0)
+            else:
+                z_bar, D = sigma_moments(h(sigma_points(x[None], L, self.w0)), self.w0)
+            z_bar, D = z_bar[0], D[0]  # (M,), (6, M)
+            resid = z - z_bar
+            if not (all_z_ok and np.isfinite(resid.sum() + D.sum())):
+                valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=0)
+                resid = np.where(valid, resid, 0.0)
+                D = np.where(valid, D, 0.0)
+            Ht = L_invT @ D  # (6, M)
+            if it > 0:
+                resid -= (x0 - x) @ Ht
+            HtR = Ht * r_inv
+            lam = info_prior + HtR @ Ht.T
+            rhs = HtR @ resid
+            if self.posterior_spread and it + 1 < max_it:
+                try:
+                    dx, U_inv, U = _posterior_factors_one(lam, rhs)
+                    L = U_inv.T * scale
+                    L_invT = np.ascontiguousarray(U) / scale
+                except np.linalg.LinAlgError:  # not numerically positive definite
+                    L = safe_cholesky(np.linalg.inv(lam)) * scale
+                    L_invT = np.ascontiguousarray(np.linalg.inv(L).T)
+                    dx = np.linalg.solve(lam, rhs)
+            else:
+                _, _, dx, info = lapack.dgesv(lam, rhs)
+                if info > 0:
+                    raise np.linalg.LinAlgError('Singular matrix')
+            x_new = x0 + dx
+            converged = bool((np.abs(x_new - x) < self.threshold).all())
+            x = x_new
+            if converged:
+                break
+        cov_post = None
+        if need_cov:
+            cov_post = np.linalg.inv(lam)
+            cov_post = (0.5 * (cov_post + cov_post.T))[None]
+        return FilterOutput(x[None], cov_post, np.array([it + 1]),
+                            np.array([converged or not self.iterated]))
 
 
 def _all_same(a: np.ndarray) -> bool:

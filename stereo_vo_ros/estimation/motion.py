@@ -101,24 +101,28 @@ def velocity_from_transform(T_prev_cur: np.ndarray, dt: float) -> np.ndarray:
 
 
 STATE_DIM = 6
-_PAIR_CACHE: dict[int, tuple[StereoCalibration, np.ndarray, np.ndarray]] = {}
+_PAIR_CACHE: dict[int, tuple] = {}
 
 
-def _pair_geometry(calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
+def _pair_geometry(calib: StereoCalibration
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
-    Tensor basis G (3, 3, 4) and fundamental matrix F of the (previous) stereo pair.
+    Tensor basis G (3, 3, 4), fundamental matrix F and the camera stack W (6, 3), o (6,).
 
-    Both depend on the calibration only, so they are computed once per calibration object.
+    G and F of the pair as the previous one, W and o as the current one (see TransferModel).
+    All depend on the calibration only, so they are computed once per calibration object.
     """
     hit = _PAIR_CACHE.get(id(calib))
     if hit is not None and hit[0] is calib:
-        return hit[1], hit[2]
+        return hit[1]
     P_A, P_B = calib.projection_left(), calib.projection_right()
-    G, F = tensor_basis(P_A, P_B), fundamental_from_projections(P_A, P_B)
+    W = np.vstack([calib.K_left, calib.K_right @ calib.R_right_left])
+    o = np.concatenate([np.zeros(3), calib.K_right @ calib.t_right_left])
+    out = (tensor_basis(P_A, P_B), fundamental_from_projections(P_A, P_B), W, o)
     if len(_PAIR_CACHE) > 8:
         _PAIR_CACHE.clear()
-    _PAIR_CACHE[id(calib)] = (calib, G, F)
-    return G, F
+    _PAIR_CACHE[id(calib)] = (calib, out)
+    return out
 
 
 class TransferModel:
@@ -155,9 +159,8 @@ class TransferModel:
         self.t_rl = cur.t_right_left
         # Both current cameras at once: P(y) = [W R^T | o - W R^T t] with W = [K_L; K_R R_rl]
         # (6, 3) and o = [0; K_R t_rl].
-        self._W = np.vstack([self.K_left, self.K_right @ self.R_rl])
-        self._o = np.concatenate([np.zeros(3), self.K_right @ self.t_rl])
-        self.G, self.F = _pair_geometry(calib)
+        self.G, self.F, _, _ = _pair_geometry(calib)
+        _, _, self._W, self._o = _pair_geometry(cur)
         self.prev_left = np.asarray(prev_left, np.float64)
         self.prev_right = np.asarray(prev_right, np.float64)
         left_t, right_t = self.prev_left.T, self.prev_right.T
@@ -201,8 +204,10 @@ class TransferModel:
         left[1, n:2 * n] += step_px
         right[0, 2 * n:3 * n] += step_px
         right[1, 3 * n:] += step_px
-        X = transfer_basis_t(self.G, left, perpendicular_lines_t(self.F, left, right))
-        pred = self.predict_planes(np.asarray(y, np.float64).reshape(1, STATE_DIM),
+        # Unnormalised: only ratios of the projections are used.
+        X = transfer_basis_t(self.G, left, perpendicular_lines_t(self.F, left, right),
+                             normalize=False)
+        pred = self.predict_planes(np.asarray(y, np.float64).reshape(STATE_DIM, 1),
                                    np.concatenate([self.X.T, X], axis=1).T)
         pred = pred.reshape(4, 5, n)  # coordinate, (unperturbed, 4 perturbations), point
         diff = (pred[:, 1:] - pred[:, :1]) / step_px
@@ -271,33 +276,36 @@ class TransferModel:
 
         """
         y = np.asarray(y, np.float64)
-        uv = self.predict_planes_t(np.moveaxis(y, -1, 0), X)
-        return np.moveaxis(uv, 0, -1)
+        uv = self.predict_stacked(np.moveaxis(y, -1, 0), X)  # (..., 4, N)
+        return uv.swapaxes(-1, -2)
 
-    def predict_planes(self, y: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+    def predict_stacked(self, yT: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
         """
-        Predict current pixels, one coordinate per plane (the layout the filters use).
+        Predict current pixels of states given component by component.
 
         Parameters
         ----------
-        y : np.ndarray
-            (K, 6) states, or (B, K, 6) with a batched X.
+        yT : np.ndarray
+            (6, ...) states, component first: (6, K), or (6, B, K) with a batched X.
         X : np.ndarray, optional
-            (N, 4) transfer vectors (default: all of this frame's), or (B, N, 4).
+            (N, 4) transfer vectors (default: all of this frame's), or (B, N, 4): problem b's
+            states see its own points.
 
         Returns
         -------
-        (4, K, N) or (4, B, K, N) float64: ``u_L, v_L, u_R, v_R`` pixels of every point under
-        every state; non-finite where a point maps to infinity.
+        (..., 4, N) float64: the ``u_L, v_L, u_R, v_R`` rows of every state's predictions
+        (a view of :meth:`predict_planes`); non-finite where a point maps to infinity.
 
         """
-        return self.predict_planes_t(np.moveaxis(np.asarray(y, np.float64), -1, 0), X)
+        uv = self.predict_planes(yT, X)
+        return np.moveaxis(uv, 0, -2)
 
-    def predict_planes_t(self, yT: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
+    def predict_planes(self, yT: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
         """
-        :meth:`predict_planes` for states given component by component: yT (6, ...).
+        :meth:`predict_stacked` with the coordinate first: (4, ..., N), each plane contiguous.
 
-        With X (N, 4): (4, ..., N). With X (B, N, 4), yT is (6, B, K): (4, B, K, N).
+        The layout the filters and RANSAC use: every division and difference runs over one
+        contiguous block.
         """
         X = self.X if X is None else X
         lead = yT.shape[1:]
@@ -305,10 +313,9 @@ class TransferModel:
         XT = X.swapaxes(-1, -2)
         if not XT.flags.c_contiguous:
             XT = np.ascontiguousarray(XT)
-        if X.ndim == 2:
-            h = P.swapaxes(1, 2) @ XT  # (6, K, N): one matrix product per camera row
-            h = h.reshape((6,) + lead + (X.shape[0],))
-        else:  # each problem b with its own points: (6, B, K, 4) @ (B, 4, N)
+        if X.ndim == 2:  # rows (camera row, state) in one matrix: one matrix product
+            h = (P.transpose(0, 2, 1).reshape(-1, 4) @ XT).reshape((6,) + lead + (X.shape[0],))
+        else:  # problem b's states see its points: (6, B, K, 4) @ (B, 4, N) -> (6, B, K, N)
             h = P.reshape((6, 4) + lead).transpose(0, 2, 3, 1) @ XT
         uv = np.empty((4,) + h.shape[1:])
         with np.errstate(divide='ignore', invalid='ignore'):

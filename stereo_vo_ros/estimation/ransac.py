@@ -16,11 +16,13 @@ import math
 
 import numpy as np
 
-from .filters import Filter, sigma_moments, sigma_points, sigma_points_t, STATE_DIM
+from .filters import Filter, sigma_moments, sigma_points_t, STATE_DIM
 from .motion import TransferModel
 from ..config import RansacConfig
 
 SAMPLE_SIZE = 3
+#: Number of points -> BatchedMeasurement.measurement_order.
+_ORDERS: dict = {}
 
 
 def num_samples(probability: float, outlier_ratio: float, sample_size: int = SAMPLE_SIZE,
@@ -94,7 +96,7 @@ class BatchedMeasurement:
         Returns
         -------
         z_bar (B, 4n) and D (B, 6, 4n), see :func:`~.filters.sigma_moments`; the
-        measurements in the order of ``__call__`` (point by point).
+        measurements coordinate by coordinate (see :meth:`measurement_order`).
 
         """
         B = x.shape[0]
@@ -102,18 +104,32 @@ class BatchedMeasurement:
             z_all, D_all = self._shared_moments(x[0], L, w0)  # (N, 4), (N, 6, 4)
             if self.index is None:
                 M = D_all.shape[0] * 4
-                return (np.broadcast_to(z_all.reshape(M), (B, M)),
-                        np.broadcast_to(np.swapaxes(D_all, 0, 1).reshape(STATE_DIM, M),
+                return (np.broadcast_to(z_all.T.reshape(M), (B, M)),
+                        np.broadcast_to(D_all.transpose(1, 2, 0).reshape(STATE_DIM, M),
                                         (B, STATE_DIM, M)))
-            D = D_all[self.index].swapaxes(1, 2)  # (B, 6, n, 4)
-            return z_all[self.index].reshape(B, -1), D.reshape(B, STATE_DIM, -1)
-        if self.X is None:
-            Z = self.model.predict(sigma_points(x, L, w0))  # (B, S, N, 4)
-            return sigma_moments(Z.reshape(Z.shape[:-2] + (-1,)), w0)
-        Z = self.model.predict_planes_t(sigma_points_t(x, L, w0), self.X)  # (4, B, S, n)
-        z_bar, D = sigma_moments(Z, w0)  # (4, B, n), (4, B, 6, n)
-        return (z_bar.transpose(1, 2, 0).reshape(B, -1),
-                D.transpose(1, 2, 3, 0).reshape(B, STATE_DIM, -1))
+            D = D_all[self.index].transpose(0, 2, 3, 1)  # (B, 6, 4, n)
+            return (z_all[self.index].swapaxes(1, 2).reshape(B, -1),
+                    D.reshape(B, STATE_DIM, -1))
+        if B == 1 and self.X is not None:  # one problem: 2-D arrays throughout
+            pts = sigma_points_t(x[0], L if L.ndim == 2 else L[0], w0)  # (6, S)
+            Z = self.model.predict_planes(pts, self.X[0])  # (4, S, n)
+            z_bar, D = sigma_moments(Z.transpose(1, 0, 2).reshape(Z.shape[1], -1), w0)
+            return z_bar[None], D[None]
+        pts = sigma_points_t(x, L, w0)  # (6, B, S)
+        Z = self.model.predict_planes(pts, self.X)  # (4, B, S, n)
+        return sigma_moments(Z.transpose(1, 2, 0, 3).reshape(Z.shape[1:3] + (-1,)), w0)
+
+    def measurement_order(self) -> np.ndarray:
+        """
+        Order of :meth:`sigma_linearize`'s measurements in ``__call__``'s (the filters' z).
+
+        Coordinate by coordinate (all u_L, then all v_L, u_R, v_R) instead of point by point.
+        """
+        n = (self.model.X if self.X is None else self.X).shape[-2]
+        order = _ORDERS.get(n)
+        if order is None:
+            order = _ORDERS[n] = (np.arange(n) * 4 + np.arange(4)[:, None]).ravel()
+        return order
 
     def _shared_moments(self, x: np.ndarray, L: np.ndarray, w0: float
                         ) -> tuple[np.ndarray, np.ndarray]:
@@ -123,9 +139,11 @@ class BatchedMeasurement:
         hit = cache.get('shared')
         if hit is not None and hit[0] == key:
             return hit[1], hit[2]
-        Z = self.model.predict_planes_t(sigma_points_t(x, L, w0))  # (4, S, N)
-        z_bar, D = sigma_moments(Z, w0)  # (4, N), (4, 6, N)
-        out = np.ascontiguousarray(z_bar.T), np.ascontiguousarray(np.transpose(D, (2, 1, 0)))
+        Z = self.model.predict_planes(sigma_points_t(x, L, w0))  # (4, S, N)
+        z_bar, D = sigma_moments(Z.transpose(1, 0, 2).reshape(Z.shape[1], -1), w0)
+        N = Z.shape[-1]  # z_bar (4 N), D (6, 4 N)
+        out = (np.ascontiguousarray(z_bar.reshape(4, N).T),
+               np.ascontiguousarray(D.reshape(STATE_DIM, 4, N).transpose(2, 0, 1)))
         cache['shared'] = (key,) + out
         return out
 
@@ -161,17 +179,17 @@ def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray,
     if index is not None:
         X, z = model.X[index], z[index]
         scale = None if scale is None else scale[index]
-    d = model.predict_planes_t(np.asarray(states, np.float64).reshape(-1, STATE_DIM).T, X)
+    d = model.predict_planes(np.asarray(states, np.float64).reshape(-1, STATE_DIM).T, X)
     d -= z.T[:, None, :]  # (4, H, N)
     d *= d
     e_left, e_right = d[0] + d[1], d[2] + d[3]  # squared errors (H, N)
     if scale is not None:
-        e_left /= scale[:, 0] * scale[:, 0]
-        e_right /= scale[:, 1] * scale[:, 1]
-    err = np.maximum(e_left, e_right, out=e_left)
-    with np.errstate(invalid='ignore'):
-        np.sqrt(err, out=err)
-    err[np.isnan(err)] = np.inf  # undefined (+inf stays)
+        w = 1.0 / (scale * scale)
+        e_left *= w[:, 0]
+        e_right *= w[:, 1]
+    err = np.sqrt(np.maximum(e_left, e_right, out=e_left), out=e_left)
+    if not np.isfinite(err.sum()):
+        err[np.isnan(err)] = np.inf  # undefined (+inf stays)
     return err
 
 
@@ -257,7 +275,8 @@ def ransac(model: TransferModel, z: np.ndarray, prior_mean: np.ndarray, prior_co
                       max_iterations=cfg.hypothesis_iterations, need_cov=False)
     err = reprojection_errors(model, out.mean, z, scale)  # (H, N)
     inl = err < cfg.inlier_threshold_px
-    count = inl.sum(axis=1) if weights is None else inl @ np.asarray(weights, np.float64)
+    count = np.count_nonzero(inl, axis=1) if weights is None else \
+        inl @ np.asarray(weights, np.float64)
     score = np.where(inl, err, 0.0).sum(axis=1)
     best = int(np.lexsort((score, -count))[0])
     return RansacResult(inliers=inl[best], state=out.mean[best], hypotheses=n_hyp,

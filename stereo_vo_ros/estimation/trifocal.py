@@ -164,13 +164,20 @@ def transfer_basis(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarra
     return transfer_basis_t(G, np.asarray(x_A, np.float64).T, np.asarray(l_B, np.float64).T).T
 
 
-def transfer_basis_t(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray) -> np.ndarray:
-    """:func:`transfer_basis` on transposed arrays: x_A (2, N), l_B (3, N) -> X (4, N)."""
+def transfer_basis_t(G: np.ndarray, x_A: np.ndarray, l_B: np.ndarray,
+                     normalize: bool = True) -> np.ndarray:
+    """
+    :func:`transfer_basis` on transposed arrays: x_A (2, N), l_B (3, N) -> X (4, N).
+
+    ``normalize=False`` leaves out the unit norm and the sign (X is homogeneous).
+    """
     # G[i]^T l_B for i = 0, 1, 2 stacked (12, N), then weighted by x_A^i (x_A^2 = 1).
     lg = np.swapaxes(G, 1, 2).reshape(12, 3) @ l_B
     X = x_A[0] * lg[0:4]
     X += x_A[1] * lg[4:8]
     X += lg[8:12]
+    if not normalize:
+        return X
     # Fix the arbitrary sign and scale so that the homogeneous part is positive when finite.
     norm = np.sqrt((X * X).sum(axis=0))
     X /= np.where(norm > 0, norm, 1.0)
