@@ -104,6 +104,35 @@ STATE_DIM = 6
 _PAIR_CACHE: dict[int, tuple] = {}
 
 
+def _rotation_monomials() -> np.ndarray:
+    """
+    Eq. 6 as a linear map (3, 3, 27) of monomials: ``R[i, j] = sum_m M[i, j, m] mono_m``.
+
+    ``mono[9 a + 3 b + c] = (z_a x_b) y_c`` with ``z = (1, cos theta, sin theta)``, ``x`` the
+    same of phi and ``y`` of psi: every entry of R is a signed sum of such products.
+    """
+    M = np.zeros((3, 3, 27))
+    one, cos, sin = 0, 1, 2
+    terms = {(0, 0): [((cos, one, cos), 1), ((sin, sin, sin), -1)],
+             (0, 1): [((sin, cos, one), -1)],
+             (0, 2): [((cos, one, sin), 1), ((sin, sin, cos), 1)],
+             (1, 0): [((sin, one, cos), 1), ((cos, sin, sin), 1)],
+             (1, 1): [((cos, cos, one), 1)],
+             (1, 2): [((sin, one, sin), 1), ((cos, sin, cos), -1)],
+             (2, 0): [((one, cos, sin), -1)],
+             (2, 1): [((one, sin, one), 1)],
+             (2, 2): [((one, cos, cos), 1)]}
+    for (i, j), monomials in terms.items():
+        for (a, b, c), sign in monomials:
+            M[i, j, 9 * a + 3 * b + c] = sign
+    return M
+
+
+_ROTATION_MONOMIALS = _rotation_monomials()
+#: Up to this many states _camera_planes forms the rotations from the monomials.
+_MONOMIAL_STATES = 64
+
+
 def _pair_geometry(calib: StereoCalibration
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
@@ -118,7 +147,9 @@ def _pair_geometry(calib: StereoCalibration
     P_A, P_B = calib.projection_left(), calib.projection_right()
     W = np.vstack([calib.K_left, calib.K_right @ calib.R_right_left])
     o = np.concatenate([np.zeros(3), calib.K_right @ calib.t_right_left])
-    out = (tensor_basis(P_A, P_B), fundamental_from_projections(P_A, P_B), W, o)
+    # W R^T (6, 3) as a linear map of the 27 monomials of eq. 6.
+    C = np.einsum('rj,cjm->rcm', W, _ROTATION_MONOMIALS)  # (6, 3, 27)
+    out = (tensor_basis(P_A, P_B), fundamental_from_projections(P_A, P_B), W, (o, C))
     if len(_PAIR_CACHE) > 8:
         _PAIR_CACHE.clear()
     _PAIR_CACHE[id(calib)] = (calib, out)
@@ -160,7 +191,7 @@ class TransferModel:
         # Both current cameras at once: P(y) = [W R^T | o - W R^T t] with W = [K_L; K_R R_rl]
         # (6, 3) and o = [0; K_R t_rl].
         self.G, self.F, _, _ = _pair_geometry(calib)
-        _, _, self._W, self._o = _pair_geometry(cur)
+        _, _, self._W, (self._o, self._C) = _pair_geometry(cur)
         self.prev_left = np.asarray(prev_left, np.float64)
         self.prev_right = np.asarray(prev_right, np.float64)
         left_t, right_t = self.prev_left.T, self.prev_right.T
@@ -198,12 +229,14 @@ class TransferModel:
         n = len(self.X)
         # The four perturbed copies of the previous pair (u_L, v_L, u_R, v_R moved in turn),
         # transferred in one pass.
-        left = np.tile(self.prev_left.T, 4)  # (2, 4n)
-        right = np.tile(self.prev_right.T, 4)
-        left[0, :n] += step_px
-        left[1, n:2 * n] += step_px
-        right[0, 2 * n:3 * n] += step_px
-        right[1, 3 * n:] += step_px
+        left, right = np.empty((2, 4, n)), np.empty((2, 4, n))
+        left[:] = self.prev_left.T[:, None]
+        right[:] = self.prev_right.T[:, None]
+        left[0, 0] += step_px
+        left[1, 1] += step_px
+        right[0, 2] += step_px
+        right[1, 3] += step_px
+        left, right = left.reshape(2, 4 * n), right.reshape(2, 4 * n)
         # Unnormalised: only ratios of the projections are used.
         X = transfer_basis_t(self.G, left, perpendicular_lines_t(self.F, left, right),
                              normalize=False)
@@ -229,22 +262,32 @@ class TransferModel:
         """
         Return the cameras of K states given component by component (yT (6, K)).
 
-        P (6, 4, K), ``P[:, :, k]`` the stacked projections of state k (see :meth:`cameras`).
-        ``P = [W R^T | o - W R^T t]``: the trigonometry and the rotation entries run on rows
-        of K values, and one matrix product with W gives all K cameras.
+        P (6, 4, K), ``P[:, :, k]`` the stacked projections of state k (see :meth:`cameras`):
+        ``P = [W R^T | o - W R^T t]``. For a few states ``W R^T`` comes from one matrix product
+        with the 27 products of the sines and cosines of eq. 6 (``_ROTATION_MONOMIALS``, fewest
+        operations); for many, the entries of ``R^T`` are formed row by row (least arithmetic)
+        and multiplied by W.
         """
         K = yT.shape[1]
         if K == 1:
             return self._camera(yT[:, 0])[..., None]
         a = yT[3:] * self.dt  # phi (about x), psi (about y), theta (about z)
-        c, s = np.cos(a), np.sin(a)
-        Rt = np.empty((3, 4, K))  # [R^T | R^T t] of every state
-        _transposed_rotation_rows(Rt, c[2], s[2], c[0], s[0], c[1], s[1])
-        m = Rt[:, :3] * (yT[:3] * self.dt)  # R^T t = sum_i (R^T)[:, i] t_i
-        np.add(m[:, 0], m[:, 1], out=Rt[:, 3])
-        Rt[:, 3] += m[:, 2]
-        P = (self._W @ Rt.reshape(3, 4 * K)).reshape(6, 4, K)
-        np.subtract(self._o[:, None], P[:, 3], out=P[:, 3])
+        P = np.empty((6, 4, K))
+        if K <= _MONOMIAL_STATES:
+            V = np.empty((3, 3, K))  # [x, y, z angle][1, cos, sin]
+            V[:, 0] = 1.0
+            np.cos(a, out=V[:, 1])
+            np.sin(a, out=V[:, 2])
+            mono = (V[2][:, None] * V[0][None])[:, :, None] * V[1][None, None]  # (3, 3, 3, K)
+            WRt = np.matmul(self._C, mono.reshape(27, K), out=P[:, :3])  # (6, 3, K)
+        else:
+            c, s = np.cos(a), np.sin(a)
+            Rt = np.empty((3, 3, K))
+            _transposed_rotation_rows(Rt, c[2], s[2], c[0], s[0], c[1], s[1])
+            WRt = np.matmul(self._W, Rt.reshape(3, 3 * K), out=P[:, :3].reshape(6, 3 * K))
+            WRt = P[:, :3]
+        m = WRt * (yT[:3] * self.dt)  # (W R^T)[:, c] t_c
+        np.subtract(self._o[:, None], m.sum(axis=1), out=P[:, 3])
         return P
 
     def _camera(self, y: np.ndarray) -> np.ndarray:
@@ -313,8 +356,8 @@ class TransferModel:
         XT = X.swapaxes(-1, -2)
         if not XT.flags.c_contiguous:
             XT = np.ascontiguousarray(XT)
-        if X.ndim == 2:  # rows (camera row, state) in one matrix: one matrix product
-            h = (P.transpose(0, 2, 1).reshape(-1, 4) @ XT).reshape((6,) + lead + (X.shape[0],))
+        if X.ndim == 2:  # one matrix product per camera row: (6, K, 4) @ (4, N)
+            h = (P.transpose(0, 2, 1) @ XT).reshape((6,) + lead + (X.shape[0],))
         else:  # problem b's states see its points: (6, B, K, 4) @ (B, 4, N) -> (6, B, K, N)
             h = P.reshape((6, 4) + lead).transpose(0, 2, 3, 1) @ XT
         uv = np.empty((4,) + h.shape[1:])
