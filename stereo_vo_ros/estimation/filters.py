@@ -412,6 +412,8 @@ class _BaseFilter:
                                           info_prior, L, L_invT, linearize)
         z_ok = np.isfinite(z)
         all_z_ok = bool(z_ok.all())
+        # Every sigma point has a non-zero weight in z_bar: a non-finite D shows in z_bar too.
+        mean_sees_all = self.w0 != 1.0
         r_inv = r_inv[:, None, :]  # (B, 1, M)
         x = mean
         lam_post = None
@@ -426,7 +428,8 @@ class _BaseFilter:
                 z_bar, D = sigma_moments(h(sigma_points(x, L, self.w0)), self.w0)
             shared = False
             resid = z - z_bar  # (B, M)
-            if not (all_z_ok and np.isfinite(resid.sum() + D.sum())):
+            total = resid.sum() if mean_sees_all else resid.sum() + D.sum()
+            if not (all_z_ok and np.isfinite(total)):
                 # Non-finite predictions are left out (rows of H with a non-finite entry).
                 valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=1)
                 resid = np.where(valid, resid, 0.0)
@@ -487,6 +490,7 @@ class _BaseFilter:
         z, r_inv = z[0], r_inv[0]
         z_ok = np.isfinite(z)
         all_z_ok = bool(z_ok.all())
+        mean_sees_all = self.w0 != 1.0  # see _update_sigma
         x = x0
         converged = False
         it = 0
@@ -498,7 +502,8 @@ class _BaseFilter:
                 z_bar, D = sigma_moments(h(sigma_points(x[None], L, self.w0)), self.w0)
             z_bar, D = z_bar[0], D[0]  # (M,), (6, M)
             resid = z - z_bar
-            if not (all_z_ok and np.isfinite(resid.sum() + D.sum())):
+            total = resid.sum() if mean_sees_all else resid.sum() + D.sum()
+            if not (all_z_ok and np.isfinite(total)):
                 valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=0)
                 resid = np.where(valid, resid, 0.0)
                 D = np.where(valid, D, 0.0)
