@@ -274,10 +274,10 @@ class PipelineConfig:
         'fast start is lost, and vehicles keeping pace can decide the first estimate.',
         dynamic=True)
     threads: int = _f(
-        0, 'Threads per stereo pair, the calling one included: independent pieces (KLT points, '
-        'detection crops, affine refinement, road alignment next to the feature estimate) run '
-        'at the same time; results do not depend on the number. 0: the cores, at most 4. Also '
-        "sets OpenCV's thread count, which is per process.", 0, 64)
+        0, 'Threads per stereo pair, the calling one included: the replenishment of features '
+        'runs next to the motion estimate and OpenCV spreads KLT points; results do not depend '
+        "on the number. 0: the cores but one, 1 to 4. Sets OpenCV's thread count (per "
+        'process).', 0, 64)
 
 
 @dataclass

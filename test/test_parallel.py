@@ -7,6 +7,7 @@ that work handed to the background thread comes back, errors included, and bit-i
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -50,6 +51,7 @@ def test_submit_runs_in_the_background_and_joins():
 def test_auto_threads_and_config_range():
     assert auto_threads(3) == 3
     assert 1 <= auto_threads(0) <= 4
+    assert auto_threads(0) <= max(1, (os.cpu_count() or 1) - 1)
     with pytest.raises(ConfigError):
         Config().replace(**{'pipeline.threads': -1})
 
