@@ -106,7 +106,17 @@ def residual_sigma(inlier_errors: np.ndarray) -> float:
 
     Their median over the Rayleigh median (1.177 sigma); ``inf`` without errors.
     """
-    return float(np.median(inlier_errors)) / RAYLEIGH_MEDIAN if len(inlier_errors) else np.inf
+    return _median(inlier_errors) / RAYLEIGH_MEDIAN if len(inlier_errors) else np.inf
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array (same value, NaN with a NaN), in a third the time."""
+    n = len(values)
+    k = n // 2
+    part = np.partition(values, [k - 1, k, -1] if n % 2 == 0 else [k, -1])
+    if np.isnan(part[-1]):
+        return float('nan')
+    return float(part[k] if n % 2 else (part[k - 1] + part[k]) / 2.0)
 
 
 def adaptive_gate(inlier_errors: np.ndarray, cfg: RansacConfig) -> float:
@@ -117,8 +127,10 @@ def adaptive_gate(inlier_errors: np.ndarray, cfg: RansacConfig) -> float:
     [``cfg.min_inlier_threshold_px``, ``cfg.inlier_threshold_px``].
     """
     sigma = residual_sigma(inlier_errors)
-    return float(np.clip(cfg.adaptive_sigmas * sigma, cfg.min_inlier_threshold_px,
-                         cfg.inlier_threshold_px))
+    gate = cfg.adaptive_sigmas * sigma
+    if gate != gate:  # NaN stays NaN, as with np.clip
+        return gate
+    return float(min(max(gate, cfg.min_inlier_threshold_px), cfg.inlier_threshold_px))
 
 
 class MotionEstimator:

@@ -333,7 +333,9 @@ class _BaseFilter:
         mean = np.asarray(mean, np.float64)
         cov = np.asarray(cov, np.float64)
         z = np.asarray(z, np.float64)
-        r_inv = np.broadcast_to(1.0 / np.asarray(noise_var, np.float64), z.shape)
+        r_inv = 1.0 / np.asarray(noise_var, np.float64)
+        if r_inv.shape != z.shape:
+            r_inv = np.broadcast_to(r_inv, z.shape)
         max_it = (max_iterations or self.cfg.max_iterations) if self.iterated else 1
         if self.sigma:
             return self._update_sigma(mean, cov, h, z, r_inv, max_it, need_cov)
@@ -402,7 +404,8 @@ class _BaseFilter:
         scale = np.sqrt(STATE_DIM + self.lam)
         info_prior, L, L_invT = self._prior_terms(cov, scale)
         # The first iteration of problems with one prior shares the sigma points.
-        shared = cov.ndim == 2 and (B == 1 or not np.any(mean != mean[0]))
+        shared = cov.ndim == 2 and (B == 1 or mean.strides[0] == 0 or
+                                    not np.any(mean != mean[0]))
         linearize = getattr(h, 'sigma_linearize', None)
         if linearize is not None:  # its measurements in its own order
             order = h.measurement_order()

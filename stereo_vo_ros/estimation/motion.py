@@ -244,8 +244,11 @@ class TransferModel:
                                    np.concatenate([self.X.T, X], axis=1).T)
         pred = pred.reshape(4, 5, n)  # coordinate, (unperturbed, 4 perturbations), point
         diff = (pred[:, 1:] - pred[:, :1]) / step_px
-        gain = (diff * diff).sum(axis=1).T
-        return np.where(np.isfinite(gain), gain, 1e6)
+        diff *= diff
+        gain = diff.sum(axis=1).T
+        if not np.isfinite(gain.sum()):
+            gain = np.where(np.isfinite(gain), gain, 1e6)
+        return gain
 
     def cameras(self, y: np.ndarray) -> np.ndarray:
         """
