@@ -217,7 +217,7 @@ class StereoTracker:
     @property
     def num_features(self) -> int:
         """Return the number of features alive after the last pair."""
-        self.join()
+        self._settled()
         return len(self._feats)
 
     # -- public API ---------------------------------------------------------------------
@@ -231,7 +231,7 @@ class StereoTracker:
 
     def feature_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Return ideal left and right pixels (N, 2) of the features alive after the last pair."""
-        self.join()
+        self._settled()
         f = self._feats
         return f.left_ideal.astype(np.float64), f.right_ideal.astype(np.float64)
 
@@ -337,9 +337,21 @@ class StereoTracker:
                            f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
 
     def join(self) -> TrackResult | None:
-        """Wait for the replenishment of the last pair; return its result (None if none)."""
+        """
+        Wait for the replenishment of the last pair; return its result (None if none).
+
+        An error of the replenishment is raised here (and by ``PendingTrack.result``).
+        """
         pending, self._pending = self._pending, None
         return None if pending is None else pending.result()
+
+    def _settled(self) -> None:
+        """Wait for a running replenishment without taking its result or its error."""
+        if self._pending is not None:
+            try:
+                self._pending.result()
+            except Exception:  # noqa: BLE001 - raised to whoever joins
+                pass
 
     # -- stages -----------------------------------------------------------------------
     def _predict(self, prior: Prior, calib: StereoCalibration
