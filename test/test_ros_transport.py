@@ -292,6 +292,10 @@ def test_compressed_bag_replayed_into_the_node(compressed_bag):
                   '/left/camera_info', '/right/camera_info')
         player = BagPlayer(h.node, compressed_bag, topics=topics, rate=None)
         assert player.wait_for_subscribers(20.0)
+        # ros.qos auto turns the image subscriptions reliable within a second of seeing the
+        # player's writers, re-creating them: replaying before that could lose images.
+        assert h.wait_for(lambda: node.image_reliability == 'reliable', 10.0)
+        assert player.wait_for_subscribers(20.0)
         time.sleep(0.5)
 
         def pace(topic, stamp_ns, msg) -> None:  # one pair in flight: no newest-wins drop
