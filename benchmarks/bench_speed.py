@@ -41,17 +41,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_accuracy import (  # noqa: E402
-    Clip, KITTI_CLIPS, load_real, render, run_clip, SHARED_DATA, verdict)
+    Clip, KITTI_CLIPS, LIBVISO2_MS, load_real, render, run_clip, SHARED_DATA, TARGET_TOTAL_MS,
+    verdict)
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
 from stereo_vo_ros.errors import ConfigError  # noqa: E402
 from stereo_vo_ros.synthetic import SequenceSpec  # noqa: E402
 
-#: libviso2 (VISO2-S, default parameters, its process() only), median ms per pair on the kitti06
-#: clip, timed once on this machine next to this package; the target is half of it.
-LIBVISO2_MS = 18.3
-TARGET_TOTAL_MS = 0.5 * LIBVISO2_MS
 #: The reference KLT pass: corners, window side (px), pyramid levels above the base.
 REFERENCE_POINTS, REFERENCE_WINDOW, REFERENCE_LEVELS = 200, 21, 3
 REFERENCE_CALLS = 20
