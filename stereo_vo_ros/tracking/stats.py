@@ -1,6 +1,9 @@
 """
 What the stereo tracker returns for one stereo pair: the quadruples and its statistics.
 
+``PendingTrack`` is the same before the pair's replenishment has finished
+(``StereoTracker.track_async``).
+
 ``TrackResult`` carries the correspondences (ideal and raw pixels, x right, y down) and the
 features alive after the pair; ``TrackerStats`` the counts per check, the adaptive threshold
 (pixels) and the time per stage (milliseconds), keyed by ``STAGES``, ``PASSES`` and ``CHECKS``.
@@ -110,3 +113,27 @@ class TrackResult:
     feature_ids: np.ndarray
     feature_ages: np.ndarray
     stats: TrackerStats
+
+
+@dataclass
+class PendingTrack:
+    """
+    A tracked pair whose replenishment may still run (``StereoTracker.track_async``).
+
+    Attributes
+    ----------
+    correspondences, raw : Correspondences
+        The quadruples in ideal and raw pixels, final.
+    stats : TrackerStats
+        The pair's statistics; complete once ``result()`` returned.
+
+    """
+
+    correspondences: Correspondences
+    raw: Correspondences
+    stats: TrackerStats
+    _job: object
+
+    def result(self) -> TrackResult:
+        """Wait for the replenishment and return the whole ``TrackResult``."""
+        return self._job.result()

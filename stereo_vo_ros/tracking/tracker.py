@@ -33,22 +33,22 @@ of the calibration (identical to raw pixels for rectified input).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 import logging
 import time
 from typing import Callable
 
-import cv2
 import numpy as np
 
 from .adaptive_threshold import bicircular_threshold
 from .affine_klt import refine_affine
 from .detection import bucket_ids, detect_corners, plan_detection
+from .features import as_grey_u8, empty_correspondences, FeatureSet
 from .klt_checks import (bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint,
                          disparity_in_range, eigen_ratio, flow_edge_ratio, lk_pass,
                          round_trip_error)
 from .photometric import PhotometricMatcher
-from .stats import CHECKS, PASSES, STAGES, TrackerStats, TrackResult  # noqa: F401 (re-exported)
+from .stats import (CHECKS, PASSES, PendingTrack, STAGES, TrackerStats,  # noqa: F401
+                    TrackResult)  # (re-exported)
 from ..config import BucketingConfig, TrackerConfig
 from ..errors import ConfigError, ImageError
 from ..estimation.camera import StereoCalibration
@@ -70,88 +70,6 @@ BARREN_BUCKET_FRAMES = 8
 #: Motion prior: (prev_left_ideal (N, 2), prev_right_ideal (N, 2)) -> (cur_left_pred (N, 2),
 #: cur_right_pred (N, 2)), all float64 ideal pixels.
 Prior = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-
-
-@dataclass
-class _Features:
-    """Features alive in one stereo pair (internal state)."""
-
-    ids: np.ndarray  # (N,) int64
-    ages: np.ndarray  # (N,) int64 frames tracked
-    left_raw: np.ndarray  # (N, 2) float32 raw pixels, left image
-    right_raw: np.ndarray  # (N, 2) float32 raw pixels, right image
-    left_ideal: np.ndarray  # (N, 2) float64 ideal pixels, left image
-    right_ideal: np.ndarray  # (N, 2) float64 ideal pixels, right image
-
-    @classmethod
-    def empty(cls) -> '_Features':
-        z32, z64 = np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float64)
-        zi = np.zeros(0, np.int64)
-        return cls(zi, zi.copy(), z32, z32.copy(), z64, z64.copy())
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def take(self, sel: np.ndarray) -> '_Features':
-        return _Features(self.ids[sel], self.ages[sel], self.left_raw[sel], self.right_raw[sel],
-                         self.left_ideal[sel], self.right_ideal[sel])
-
-    def concat(self, other: '_Features') -> '_Features':
-        return _Features(*(np.concatenate([a, b]) for a, b in (
-            (self.ids, other.ids), (self.ages, other.ages), (self.left_raw, other.left_raw),
-            (self.right_raw, other.right_raw), (self.left_ideal, other.left_ideal),
-            (self.right_ideal, other.right_ideal))))
-
-
-def _empty_correspondences() -> Correspondences:
-    z = np.zeros((0, 2), np.float64)
-    return Correspondences(z, z.copy(), z.copy(), z.copy(), np.zeros(0, np.int64),
-                           np.zeros(0, np.int64))
-
-
-def _as_grey_u8(img: np.ndarray, name: str, bits: int) -> tuple[np.ndarray, int]:
-    """Return a contiguous (H, W) uint8 image and the bit depth used to scale uint16 input."""
-    if not isinstance(img, np.ndarray):
-        raise ImageError(f'{name} image must be a numpy array, got {type(img).__name__}')
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[:, :, 0]
-    if img.ndim != 2:
-        raise ImageError(f'{name} image must be grey (H, W), got shape {img.shape}')
-    if img.shape[0] < 2 or img.shape[1] < 2:
-        raise ImageError(f'{name} image is too small: {img.shape[1]}x{img.shape[0]}')
-    if img.dtype == np.uint8:
-        return np.ascontiguousarray(img), bits
-    if img.dtype == np.uint16:
-        # Scale by a bit depth that only grows (12-bit data in 16-bit containers stays bright
-        # and the scale stays constant between frames, as KLT assumes).
-        peak = int(img.max())
-        bits = max(bits, 8, peak.bit_length())
-        return cv2.convertScaleAbs(img, alpha=255.0 / (2 ** bits - 1)), bits
-    raise ImageError(f'{name} image must be uint8 or uint16, got {img.dtype}')
-
-
-@dataclass
-class PendingTrack:
-    """
-    A tracked pair whose replenishment may still run (``StereoTracker.track_async``).
-
-    Attributes
-    ----------
-    correspondences, raw : Correspondences
-        The quadruples in ideal and raw pixels, final.
-    stats : TrackerStats
-        The pair's statistics; complete once ``result()`` returned.
-
-    """
-
-    correspondences: Correspondences
-    raw: Correspondences
-    stats: TrackerStats
-    _job: object
-
-    def result(self) -> TrackResult:
-        """Wait for the replenishment and return the whole ``TrackResult``."""
-        return self._job.result()
 
 
 class StereoTracker:
@@ -209,7 +127,7 @@ class StereoTracker:
         self._calib: StereoCalibration | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
         self._floats: list[tuple[np.ndarray, np.ndarray]] = []
-        self._feats = _Features.empty()
+        self._feats = FeatureSet.empty()
         self._bits = 8
         self._barren: np.ndarray | None = None  # (rows, cols) frames to skip each bucket
         self._photo = PhotometricMatcher()
@@ -237,7 +155,7 @@ class StereoTracker:
 
     def as_grey(self, img: np.ndarray) -> np.ndarray:
         """Return an image as ``track`` sees it: (H, W) uint8, uint16 scaled by the bit depth."""
-        return _as_grey_u8(img, 'left', self._bits)[0]
+        return as_grey_u8(img, 'left', self._bits)[0]
 
     def track(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
               prior: Prior | None = None) -> TrackResult:
@@ -291,8 +209,8 @@ class StereoTracker:
         # written) carry over; the caller may reuse its buffers for the next pair.
         self._floats = [(src, conv) for src, conv in self._floats
                         if self._prev is not None and any(src is p for p in self._prev)]
-        left8, self._bits = _as_grey_u8(left, 'left', self._bits)
-        right8, self._bits = _as_grey_u8(right, 'right', self._bits)
+        left8, self._bits = as_grey_u8(left, 'left', self._bits)
+        right8, self._bits = as_grey_u8(right, 'right', self._bits)
         if left8.shape != right8.shape:
             raise ImageError(f'left and right images differ in size: {left8.shape[::-1]} vs '
                              f'{right8.shape[::-1]}')
@@ -306,11 +224,11 @@ class StereoTracker:
             if self._prev is not None:
                 logger.info('tracker re-initialised: new calibration or image size %dx%d',
                             left8.shape[1], left8.shape[0])
-            self._feats = _Features.empty()
+            self._feats = FeatureSet.empty()
             self._barren = None
             self._calib = calib
             stats.initialized = True
-            corr, raw = _empty_correspondences(), _empty_correspondences()
+            corr, raw = empty_correspondences(), empty_correspondences()
         else:
             corr, raw = self._track_existing(left8, right8, calib, prior, stats)
         # Own copies: the caller may reuse its image buffers.
@@ -549,7 +467,7 @@ class StereoTracker:
         raw = Correspondences(prev.left_raw.astype(np.float64),
                               prev.right_raw.astype(np.float64), cur_l.astype(np.float64),
                               cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
-        self._feats = _Features(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
+        self._feats = FeatureSet(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
         return corr, raw
 
     def _matched(self, reference: np.ndarray, img: np.ndarray, pts_reference: np.ndarray | None,
@@ -669,6 +587,6 @@ class StereoTracker:
             return
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
-        new = _Features(ids, np.zeros(n, np.int64), pts[ok].astype(np.float32),
-                        pr[ok].astype(np.float32), il[ok], ir[ok])
+        new = FeatureSet(ids, np.zeros(n, np.int64), pts[ok].astype(np.float32),
+                         pr[ok].astype(np.float32), il[ok], ir[ok])
         self._feats = f.concat(new)
