@@ -97,6 +97,7 @@ class StereoTracker:
         #: Where the replenishment runs (``track_async``); inline by default.
         self.workers = workers or inline()
         self._next_id = 0
+        self._pending = None  # the last pair's replenishment while it may run
         self.reset()
 
     def configure(self, tracker_cfg: TrackerConfig, bucketing_cfg: BucketingConfig) -> None:
@@ -121,8 +122,7 @@ class StereoTracker:
 
     def reset(self) -> None:
         """Forget every feature and the previous images; the next pair re-initialises."""
-        if getattr(self, '_pending', None) is not None:
-            self._pending.result()
+        self._settled()  # a running replenishment ends first; its features are dropped anyway
         self._pending = None
         self._calib: StereoCalibration | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
