@@ -27,6 +27,8 @@ Pixel coordinates are (x right, y down), pixel centres at integers as in OpenCV.
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -38,8 +40,8 @@ DET_RANGE = (0.25, 4.0)
 MIN_ZNCC = 0.7
 #: Parameters (dA00, dA01, dA10, dA11, dcx, dcy) of the affine and the horizontal model, each
 #: a gradient (0: d/dx, 1: d/dy) times a basis function (0: x, 1: y, 2: 1) of the window.
-_AFFINE = (0, 1, 2, 3, 4, 5)
-_HORIZONTAL = (0, 1, 4)
+_AFFINE = np.array([0, 1, 2, 3, 4, 5])
+_HORIZONTAL = np.array([0, 1, 4])
 _GRAD = np.array([0, 0, 1, 1, 0, 1])
 _BASIS = np.array([0, 1, 0, 1, 2, 2])
 #: Basis products (i, j), i <= j, and the index of each (i, j) among them.
@@ -52,6 +54,28 @@ DAMPING = 1e-3
 def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Bilinear samples of a float32 image at float32 (N, K) positions (border replicated)."""
     return cv2.remap(img, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+@functools.lru_cache(maxsize=8)
+def _window(half: int, step: int) -> tuple[np.ndarray, ...]:
+    """
+    Window offsets of the refinement (float32 pixels), computed once per size and step.
+
+    Returns the offsets (x, y) of the template with its one-pixel border (row by row), those of
+    the sampled window pixels, the basis (x, y, 1) of the sampled pixels (K, 3) and its pairwise
+    products (K, 6) in the order of ``_PAIRS``. Read-only.
+    """
+    r = np.arange(-half - 1, half + 2, dtype=np.float32)
+    side = len(r)
+    ox, oy = np.tile(r, side), np.repeat(r, side)
+    x = ox.reshape(side, side)[1:-1, 1:-1][::step, ::step].ravel()
+    y = oy.reshape(side, side)[1:-1, 1:-1][::step, ::step].ravel()
+    basis = np.stack([x, y, np.ones_like(x)], axis=1)
+    pair_basis = basis[:, _PAIRS[:, 0]] * basis[:, _PAIRS[:, 1]]
+    out = (ox, oy, x, y, basis, pair_basis)
+    for arr in out:
+        arr.setflags(write=False)
+    return out
 
 
 def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
@@ -98,29 +122,23 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
     start = given.copy()
     src = np.asarray(img_from, np.float32)
     dst = np.asarray(img_to, np.float32)
-    half = int(win_size_px) // 2
-    # Template with a one-pixel border for its central-difference gradient.
-    r = np.arange(-half - 1, half + 2, dtype=np.float32)
-    side = len(r)
-    ox, oy = np.tile(r, side), np.repeat(r, side)
+    st = max(int(step_px), 1)
+    ox, oy, x, y, basis, pair_basis = _window(int(win_size_px) // 2, st)
+    side = int(win_size_px) // 2 * 2 + 3  # the window and a one-pixel border
     p0 = np.asarray(pts_from, np.float32).reshape(-1, 2)
     tpl = _sample(src, p0[:, :1] + ox, p0[:, 1:] + oy).reshape(n, side, side)
-    st = max(int(step_px), 1)
-    tx = (0.5 * (tpl[:, 1:-1, 2:] - tpl[:, 1:-1, :-2]))[:, ::st, ::st].reshape(n, -1)
-    ty = (0.5 * (tpl[:, 2:, 1:-1] - tpl[:, :-2, 1:-1]))[:, ::st, ::st].reshape(n, -1)
+    # Central differences at the sampled pixels only (rows and columns 1, 1 + st, ...).
+    tx = (0.5 * (tpl[:, 1:-1:st, 2::st] - tpl[:, 1:-1:st, :-2:st])).reshape(n, -1)
+    ty = (0.5 * (tpl[:, 2::st, 1:-1:st] - tpl[:, :-2:st, 1:-1:st])).reshape(n, -1)
     tpl = np.ascontiguousarray(tpl[:, 1:-1, 1:-1][:, ::st, ::st]).reshape(n, -1)
-    x = ox.reshape(side, side)[1:-1, 1:-1][::st, ::st].ravel()
-    y = oy.reshape(side, side)[1:-1, 1:-1][::st, ::st].ravel()
     # Steepest-descent images of the parameters (dA00, dA01, dA10, dA11, dcx, dcy) are
     # gradient (tx or ty) times basis (x, y or 1); their products are sums over the window of
     # gradient products times basis products, i.e. three small matrix products.
-    params = np.array(_HORIZONTAL if horizontal else _AFFINE)
+    params = _HORIZONTAL if horizontal else _AFFINE
     if horizontal:
         start[:, 1] = np.asarray(pts_from, np.float64).reshape(-1, 2)[:, 1]
-    basis = np.stack([x, y, np.ones_like(x)], axis=1)  # (K, 3)
     grads = np.stack([tx, ty])  # (2, n, K)
     g, b = _GRAD[params], _BASIS[params]
-    pair_basis = basis[:, _PAIRS[:, 0]] * basis[:, _PAIRS[:, 1]]  # (K, 6)
     sums = np.stack([tx * tx, tx * ty, ty * ty]) @ pair_basis  # (3, n, 6)
     hess = sums[g[:, None] + g[None, :], :, _PAIR_INDEX[b[:, None], b[None, :]]]
     hess = hess.transpose(2, 0, 1).astype(np.float64)  # (n, P, P)
