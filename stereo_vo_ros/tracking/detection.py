@@ -103,19 +103,30 @@ def bucket_ids(points: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
     return idx[idx >= 0]
 
 
-def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float) -> np.ndarray:
+def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float,
+               rects: list[tuple[int, int, int, int]] | None = None) -> np.ndarray:
     """
     (H, W) uint8 mask: 255 on pixels at least ``radius`` from every point, 0 near them.
 
     Filled discs drawn with OpenCV (a distance transform of the whole image costs ten times
-    more); the disc radius is rounded up, so the mask errs on the side of keeping away.
+    more); the disc radius is rounded up, so the mask errs on the side of keeping away. With
+    ``rects`` ((x0, y0, x1, y1), end exclusive) the mask is exact inside them only: discs that
+    reach none of them are not drawn.
     """
     free = np.full(shape, 255, np.uint8)
     r = int(math.ceil(radius))
     h, w = shape
-    for x, y in np.round(points).astype(np.int64):
-        if -r <= x < w + r and -r <= y < h + r:
-            cv2.circle(free, (int(x), int(y)), r, 0, -1)
+    centres = np.round(points).astype(np.int64).reshape(-1, 2)
+    near = ((centres[:, 0] >= -r) & (centres[:, 0] < w + r) & (centres[:, 1] >= -r)
+            & (centres[:, 1] < h + r))
+    if rects is not None:
+        box = np.asarray(rects, np.int64).reshape(-1, 4)
+        near &= ((centres[:, None, 0] + r >= box[None, :, 0])
+                 & (centres[:, None, 0] - r < box[None, :, 2])
+                 & (centres[:, None, 1] + r >= box[None, :, 1])
+                 & (centres[:, None, 1] - r < box[None, :, 3])).any(axis=1)
+    for x, y in centres[near].tolist():
+        cv2.circle(free, (x, y), r, 0, -1)
     return free
 
 
@@ -168,11 +179,12 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
     if bcfg.enabled and chosen is None:
         chosen = plan_detection(existing, need, (w, h), bcfg)
     pad = cfg.block_size // 2 + 2
-    free = _free_mask(existing, (h, w), cfg.min_distance_px) if len(existing) else None
+    rects, counts = _regions(chosen, (w, h), bcfg)
+    crops = [(max(x0 - pad, 0), max(y0 - pad, 0), min(x1 + pad, w), min(y1 + pad, h))
+             for x0, y0, x1, y1 in rects]
+    free = _free_mask(existing, (h, w), cfg.min_distance_px, crops) if len(existing) else None
     found, ranks = [], []
-    for (x0, y0, x1, y1), count in zip(*_regions(chosen, (w, h), bcfg)):
-        cx0, cy0 = max(x0 - pad, 0), max(y0 - pad, 0)
-        cx1, cy1 = min(x1 + pad, w), min(y1 + pad, h)
+    for (x0, y0, x1, y1), (cx0, cy0, cx1, cy1), count in zip(rects, crops, counts):
         mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
         mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
         if free is not None:
