@@ -87,7 +87,7 @@ def main() -> int:
     ap.add_argument('--data', type=Path, default=SHARED_DATA, help='folder of the real clips')
     ap.add_argument('--seeds', nargs='+', default=['0-7'])
     ap.add_argument('--frames', type=int, default=150, help='frames per rendered scene')
-    ap.add_argument('--presets', nargs='+', default=list(PRESETS))
+    ap.add_argument('--presets', nargs='*', default=list(PRESETS), help='none: time only')
     ap.add_argument('--cache', type=Path, default=None, help='keep renders here (npz)')
     ap.add_argument('--rounds', type=int, default=3, help='timing rounds (0: no timing)')
     args = ap.parse_args()
