@@ -206,11 +206,13 @@ def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: in
     H, W = img.shape
     cx = np.clip(np.rint(pts[:, 0]).astype(np.intp), half + 1, W - half - 2)
     cy = np.clip(np.rint(pts[:, 1]).astype(np.intp), half + 1, H - half - 2)
-    patch = np.asarray(img)[cy[:, None, None] + r[None, :, None],
-                            cx[:, None, None] + r[None, None, :]].astype(np.float32)
+    # The windows and a one-pixel border: rows of a sliding-window view (one small copy).
+    windows = np.lib.stride_tricks.sliding_window_view(np.asarray(img), (len(r), len(r)))
+    patch = windows[cy - half - 1, cx - half - 1].astype(np.float32)
     st = max(int(step_px), 1)
-    gx = (0.5 * (patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2]))[:, ::st, ::st]
-    gy = (0.5 * (patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1]))[:, ::st, ::st]
+    # Central differences at the sampled pixels only (rows and columns 1, 1 + st, ...).
+    gx = 0.5 * (patch[:, 1:-1:st, 2::st] - patch[:, 1:-1:st, :-2:st])
+    gy = 0.5 * (patch[:, 2::st, 1:-1:st] - patch[:, :-2:st, 1:-1:st])
     x = r[1:-1][::st].astype(np.float32)
     n, k = len(pts), gx.shape[1] * gx.shape[2]
     sd = np.stack([gx * x[None, None, :], gx * x[None, :, None], gx], 1).reshape(n, 3, k)
