@@ -235,7 +235,7 @@ class StereoOdometry:
             t0 = time.perf_counter()
             self.rig.update(corr, est.inliers, est.T_prev_cur, dt, prev_calib, calib,
                             self.tracker.last_pair(), self.config.tracker.win_size_px,
-                            coupling)
+                            coupling, track.stereo_klt_right[:, 1])
             timings['rig'] += (time.perf_counter() - t0) * 1e3
         if ok:
             self._lost_time = 0.0

@@ -46,9 +46,10 @@ significantly (``rig.apply_probability``).
 
 On rectified input the tracker's affine stereo refinement puts the right point on the left
 point's row (``pinned_rows``): such rows carry no information, so the rows of the inliers are
-measured again (:func:`measure_rows`), and the slide along the row that the row error caused is
-undone (:func:`row_coupling`). A tracker that refined along the rig's epipolar line (the rows
-this estimate expects) and kept its free row would make both unnecessary.
+taken from the tracker's 2-D stereo KLT match before that refinement (or, without it, measured
+again: :func:`measure_rows`), and the slide along the row that the row error caused is undone
+(:func:`row_coupling`). A tracker that refined along the rig's epipolar line (the rows this
+estimate expects) would make the slide correction unnecessary.
 
 The error model and the per-pair measurements are in :mod:`.rig_measurement`, the refined
 calibration's CameraInfo fields and YAML in :mod:`.rig_camera_info`; their public names are
@@ -68,7 +69,7 @@ from .rig_camera_info import camera_info_yaml, refined_camera_infos
 from .rig_measurement import (apply_homography, initial_points, measure_pair, measure_rows,
                               N_PARAMS, offsets_at_centre, PairMeasurement, PARAMETERS,
                               pinned_rows, rig_jacobian, right_homography, rotation_zxy,
-                              row_coupling)
+                              row_coupling, ROW_GATE_PX)
 from ..config import RigConfig
 from ..records import Correspondences, RigEstimate
 
@@ -298,7 +299,8 @@ class RigCalibrator:
                dt: float, calib_prev: StereoCalibration, calib_cur: StereoCalibration,
                images: tuple[np.ndarray, np.ndarray] | None = None,
                win_size_px: int = 13,
-               coupling: tuple[np.ndarray, np.ndarray] | None = None) -> str:
+               coupling: tuple[np.ndarray, np.ndarray] | None = None,
+               stereo_rows: np.ndarray | None = None) -> str:
         """
         Measure the rig error on one pair's inliers and fuse it.
 
@@ -322,6 +324,10 @@ class RigCalibrator:
             KLT window of that row measurement (pixels).
         coupling : tuple of np.ndarray, optional
             ``couplings`` of the pair (as for ``corrected``).
+        stereo_rows : np.ndarray, optional
+            (N,) rows (pixels) of the current right points as a free 2-D stereo match found
+            them (the tracker's stereo KLT pass, before its refinement pinned the rows; NaN
+            where unknown). Given, they replace ``measure_rows`` for the pinned inliers.
 
         Returns
         -------
@@ -351,10 +357,17 @@ class RigCalibrator:
         used[:, 3] = ~pinned_rows(calib_prev, raw.prev_left, raw.prev_right)
         pinned = np.flatnonzero(pinned_rows(calib_cur, raw.cur_left, raw.cur_right))
         used[pinned, 7] = False
-        if pinned.size and images is not None:
+        rows = None
+        if pinned.size and (stereo_rows is not None or images is not None):
             start = self._unpinned(raw.cur_left[pinned], raw.cur_right[pinned], calib_cur)
-            rows = measure_rows(images[0], images[1], raw.cur_left[pinned], start, win_size_px)
-            rows = rows[:, 1]
+            if stereo_rows is not None:
+                rows = np.asarray(stereo_rows, np.float64)[inliers][pinned]
+                with np.errstate(invalid='ignore'):
+                    rows[~(np.abs(rows - start[:, 1]) < ROW_GATE_PX)] = np.nan
+            else:
+                rows = measure_rows(images[0], images[1], raw.cur_left[pinned], start,
+                                    win_size_px)[:, 1]
+        if rows is not None:
             good = np.isfinite(rows)
             free = raw.cur_right[pinned[good]].astype(np.float64)
             free[:, 1] = rows[good]

@@ -37,6 +37,9 @@ from ..records import Correspondences
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
 PARAMETERS = ('roll_rad', 'pitch_rad', 'yaw_rad', 'focal_ratio', 'disparity_offset_px')
 N_PARAMS = len(PARAMETERS)
+#: A free stereo match of a pinned right point farther than this from where the current
+#: estimate expects it (pixels, each coordinate) is not used to measure its row.
+ROW_GATE_PX = 1.0
 
 
 # -- the error model ------------------------------------------------------------------------------
@@ -155,7 +158,7 @@ def measure_rows(left_img: np.ndarray, right_img: np.ndarray, left: np.ndarray,
     Returns
     -------
     np.ndarray
-        (N, 2) float64 right pixels, NaN where KLT failed or moved more than a pixel.
+        (N, 2) float64 right pixels, NaN where KLT failed or moved ``ROW_GATE_PX`` or more.
 
     """
     if len(left) == 0:
@@ -167,7 +170,8 @@ def measure_rows(left_img: np.ndarray, right_img: np.ndarray, left: np.ndarray,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.005),
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     found = found.reshape(-1, 2).astype(np.float64)
-    ok = (status.ravel() == 1) & np.all(np.abs(found - start.reshape(-1, 2)) < 1.0, axis=1)
+    ok = (status.ravel() == 1) & np.all(np.abs(found - start.reshape(-1, 2)) < ROW_GATE_PX,
+                                        axis=1)
     return np.where(ok[:, None], found, np.nan)
 
 

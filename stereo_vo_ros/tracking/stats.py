@@ -126,12 +126,17 @@ class PendingTrack:
         The quadruples in ideal and raw pixels, final.
     stats : TrackerStats
         The pair's statistics; complete once ``result()`` returned.
+    stereo_klt_right : np.ndarray
+        (N, 2) float64 raw right pixels of the quadruples' current stereo matches as the 2-D
+        KLT pass found them, before the affine refinement (which, on rectified input, puts the
+        right point on the left point's row): their rows are measured, not copied.
 
     """
 
     correspondences: Correspondences
     raw: Correspondences
     stats: TrackerStats
+    stereo_klt_right: np.ndarray
     _job: object
 
     def result(self) -> TrackResult:

@@ -229,8 +229,9 @@ class StereoTracker:
             self._calib = calib
             stats.initialized = True
             corr, raw = empty_correspondences(), empty_correspondences()
+            klt_right = np.zeros((0, 2))
         else:
-            corr, raw = self._track_existing(left8, right8, calib, prior, stats)
+            corr, raw, klt_right = self._track_existing(left8, right8, calib, prior, stats)
         # Own copies: the caller may reuse its image buffers.
         self._prev = (left8.copy() if np.may_share_memory(left8, left) else left8,
                       right8.copy() if np.may_share_memory(right8, right) else right8)
@@ -239,7 +240,7 @@ class StereoTracker:
         self._pending = self.workers.submit(
             self._replenish_and_finish, left8, right8, calib, stats,
             prior if stats.used_prior else None, corr, raw, t_start)
-        return PendingTrack(corr, raw, stats, self._pending)
+        return PendingTrack(corr, raw, stats, klt_right, self._pending)
 
     def _replenish_and_finish(self, left8: np.ndarray, right8: np.ndarray,
                               calib: StereoCalibration, stats: TrackerStats,
@@ -320,8 +321,13 @@ class StereoTracker:
 
     def _track_existing(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
                         prior: Prior | None, stats: TrackerStats
-                        ) -> tuple[Correspondences, Correspondences]:
-        """Track the features of t1 into the pair t2 through every enabled check."""
+                        ) -> tuple[Correspondences, Correspondences, np.ndarray]:
+        """
+        Track the features of t1 into the pair t2 through every enabled check.
+
+        Returns the quadruples (ideal and raw pixels) and the raw right points of their stereo
+        KLT pass before the affine refinement ((N, 2) float64).
+        """
         cfg, checks = self.cfg, self.checks
         prev_left, prev_right = self._prev
         f = self._feats
@@ -426,6 +432,7 @@ class StereoTracker:
             ok &= rng
         alive, cur_r, ideal_l, ideal_r = alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok]
         ms['stereo_bwd'] = (clock() - t) * 1e3
+        klt_r = cur_r.astype(np.float64)
         if cfg.affine_refinement and len(alive):
             cur_r = self._refine(left, right, cur_l[alive], cur_r, stats, stereo=True)
             ideal_r = calib.undistort_right(cur_r)
@@ -455,8 +462,8 @@ class StereoTracker:
             err = bicircular_error(cfg.bicircular_mode, cur_r, back_r, f.right_raw[alive], again)
             ok &= err < delta_d
             failed['bc'] = int(np.count_nonzero(~ok))
-            alive, cur_r, ideal_l, ideal_r, ages = (
-                alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok], ages[ok])
+            alive, cur_r, ideal_l, ideal_r, ages, klt_r = (
+                alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok], ages[ok], klt_r[ok])
             ms['bicircular'] = (clock() - t) * 1e3
 
         stats.n_tracked = len(alive)
@@ -468,7 +475,7 @@ class StereoTracker:
                               prev.right_raw.astype(np.float64), cur_l.astype(np.float64),
                               cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
         self._feats = FeatureSet(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
-        return corr, raw
+        return corr, raw, klt_r
 
     def _matched(self, reference: np.ndarray, img: np.ndarray, pts_reference: np.ndarray | None,
                  pts_img: np.ndarray | None, stats: TrackerStats) -> tuple[np.ndarray, float]:
