@@ -5,8 +5,9 @@ The renderer's rig presets render the right image with a known error of the righ
 (``SequenceSpec.rig_*``: roll, pitch, yaw, focal ratio, disparity offset), which the pipeline
 does not know. This runs the pipeline over a rendered scene and compares its estimate
 (``StereoOdometry.rig.theta``) with that error: the row and disparity offsets at the right
-principal point (``offsets_at_centre``, pixels) and the largest difference of the two error
-homographies over the image corners and edge middles (x and y, pixels). An exact rig (presets
+principal point (``offsets_at_centre``, pixels) and the largest difference between the estimated
+error homography and the one the renderer applied (``SequenceSpec.right_homography``) over the
+image corners and edge middles (x and y, pixels). An exact rig (presets
 without ``_rig``) should stay at zero.
 
 Usage::
@@ -67,7 +68,7 @@ def main() -> int:
         w, h = calib.size
         pts = np.array([[x, y] for x in (0, w / 2, w - 1) for y in (0, h / 2, h - 1)], float)
         diff = np.abs(apply_homography(right_homography(calib.K_right, est), pts)
-                      - apply_homography(right_homography(calib.K_right, true), pts)).max(axis=0)
+                      - apply_homography(spec.right_homography(), pts)).max(axis=0)
         (tr, td), (er, ed) = c @ true, c @ est
         print(f'{preset:14s} {tr:9.3f} {er:8.3f} {td:9.3f} {ed:8.3f} {diff[0]:7.3f} '
               f'{diff[1]:7.3f} {vo.rig.updates:7d}', flush=True)

@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from .camera import StereoCalibration
 from ..config import RigConfig
 from ..records import Correspondences
+from ..tracking.klt_checks import sampled_differences, window_patches
 
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
 PARAMETERS = ('roll_rad', 'pitch_rad', 'yaw_rad', 'focal_ratio', 'disparity_offset_px')
@@ -210,13 +211,9 @@ def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: in
     H, W = img.shape
     cx = np.clip(np.rint(pts[:, 0]).astype(np.intp), half + 1, W - half - 2)
     cy = np.clip(np.rint(pts[:, 1]).astype(np.intp), half + 1, H - half - 2)
-    # The windows and a one-pixel border: rows of a sliding-window view (one small copy).
-    windows = np.lib.stride_tricks.sliding_window_view(np.asarray(img), (len(r), len(r)))
-    patch = windows[cy - half - 1, cx - half - 1].astype(np.float32)
+    patch = window_patches(np.asarray(img), np.stack([cx, cy], axis=1), half)
     st = max(int(step_px), 1)
-    # Central differences at the sampled pixels only (rows and columns 1, 1 + st, ...).
-    gx = 0.5 * (patch[:, 1:-1:st, 2::st] - patch[:, 1:-1:st, :-2:st])
-    gy = 0.5 * (patch[:, 2::st, 1:-1:st] - patch[:, :-2:st, 1:-1:st])
+    gx, gy = sampled_differences(patch.astype(np.float32), st)
     x = r[1:-1][::st].astype(np.float32)
     n, k = len(pts), gx.shape[1] * gx.shape[2]
     sd = np.stack([gx * x[None, None, :], gx * x[None, :, None], gx], 1).reshape(n, 3, k)

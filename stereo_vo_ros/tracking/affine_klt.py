@@ -32,6 +32,8 @@ import functools
 import cv2
 import numpy as np
 
+from .klt_checks import sampled_differences
+
 #: Largest accepted move of a point by the refinement (pixels).
 MAX_SHIFT_PX = 2.0
 #: Accepted range of the determinant of A (area ratio of the two windows).
@@ -127,9 +129,7 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
     side = int(win_size_px) // 2 * 2 + 3  # the window and a one-pixel border
     p0 = np.asarray(pts_from, np.float32).reshape(-1, 2)
     tpl = _sample(src, p0[:, :1] + ox, p0[:, 1:] + oy).reshape(n, side, side)
-    # Central differences at the sampled pixels only (rows and columns 1, 1 + st, ...).
-    tx = (0.5 * (tpl[:, 1:-1:st, 2::st] - tpl[:, 1:-1:st, :-2:st])).reshape(n, -1)
-    ty = (0.5 * (tpl[:, 2::st, 1:-1:st] - tpl[:, :-2:st, 1:-1:st])).reshape(n, -1)
+    tx, ty = (g.reshape(n, -1) for g in sampled_differences(tpl, st))
     tpl = np.ascontiguousarray(tpl[:, 1:-1, 1:-1][:, ::st, ::st]).reshape(n, -1)
     # Steepest-descent images of the parameters (dA00, dA01, dA10, dA11, dcx, dcy) are
     # gradient (tx or ty) times basis (x, y or 1); their products are sums over the window of

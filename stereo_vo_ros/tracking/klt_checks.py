@@ -160,6 +160,58 @@ def inside_image(pts: np.ndarray, size: tuple[int, int], border_px: float = BORD
                 & (pts[:, 1] <= h - 1 - border_px))
 
 
+def window_patches(img: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
+    """
+    Square windows of an image and a one-pixel border around integer centres.
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) image.
+    centres : np.ndarray
+        (N, 2) int pixel positions (x, y) of the window centres.
+    half : int
+        Half the window side (pixels): windows are ``2 half + 1`` pixels, patches ``2 half + 3``.
+
+    Returns
+    -------
+    np.ndarray
+        (N, 2 half + 3, 2 half + 3) patches of ``img``'s dtype; pixels outside the image repeat
+        its border. Patches inside the image are rows of a sliding-window view (one small
+        copy); the others take their pixels one by one.
+
+    """
+    centres = np.asarray(centres, np.int64).reshape(-1, 2)
+    h, w = img.shape
+    r = half + 1
+    side = 2 * r + 1
+    inside = np.all((centres >= r) & (centres < np.array([w, h]) - r), axis=1)
+    patches = np.empty((len(centres), side, side), img.dtype)
+    if inside.any():
+        windows = np.lib.stride_tricks.sliding_window_view(img, (side, side))
+        patches[inside] = windows[centres[inside, 1] - r, centres[inside, 0] - r]
+    if not inside.all():
+        offs = np.arange(-r, r + 1)
+        c = centres[~inside]
+        ys = np.clip(c[:, 1, None] + offs, 0, h - 1)
+        xs = np.clip(c[:, 0, None] + offs, 0, w - 1)
+        patches[~inside] = img[ys[:, :, None], xs[:, None, :]]
+    return patches
+
+
+def sampled_differences(patches: np.ndarray, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Central differences (x, y) of patches with a one-pixel border, at every ``step``-th pixel.
+
+    ``patches`` (N, S, S) float; returns two (N, K, K) arrays of half the difference of the
+    neighbours, at rows and columns 1, 1 + step, ... of the patch (its border only feeds the
+    stencils), K = ceil((S - 2) / step).
+    """
+    gx = 0.5 * (patches[:, 1:-1:step, 2::step] - patches[:, 1:-1:step, :-2:step])
+    gy = 0.5 * (patches[:, 2::step, 1:-1:step] - patches[:, :-2:step, 1:-1:step])
+    return gx, gy
+
+
 def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: bool = False
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
@@ -187,29 +239,14 @@ def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: b
 
     """
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
-    h, w = img.shape
     half = int(win_size_px) // 2
-    offs = np.arange(-half - 1, half + 2)  # the window and a one-pixel border
     ok = np.all(np.isfinite(pts), axis=1)
     centre = np.where(ok[:, None], np.round(pts), 0.0).astype(np.int64)
-    n, side = len(pts), len(offs)
-    # Patches whose window lies inside the image are rows of a sliding-window view (one
-    # small copy); the others take their pixels one by one, the border replicated.
-    r = half + 1
-    inside = np.all((centre >= r) & (centre < np.array([w, h]) - r), axis=1)
-    patches = np.empty((n, side, side), img.dtype)
-    if inside.any():
-        windows = np.lib.stride_tricks.sliding_window_view(img, (side, side))
-        patches[inside] = windows[centre[inside, 1] - r, centre[inside, 0] - r]
-    if not inside.all():
-        c = centre[~inside]
-        ys = np.clip(c[:, 1, None] + offs, 0, h - 1)
-        xs = np.clip(c[:, 0, None] + offs, 0, w - 1)
-        patches[~inside] = img[ys[:, :, None], xs[:, None, :]]
     # Gradients inside each patch (its border pixels only feed the stencils): sums of grey
     # levels, exact in float32, then scaled by a power of two, so exactly what OpenCV's
     # float filters give.
-    p = patches.astype(np.float32)
+    p = window_patches(img, centre, half).astype(np.float32)
+    n, side = p.shape[:2]
     gx = np.zeros((n, side, side), np.float32)
     gy = np.zeros((n, side, side), np.float32)
     dx = p[:, :, 2:] - p[:, :, :-2]  # (n, side, side - 2)
