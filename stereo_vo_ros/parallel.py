@@ -1,34 +1,53 @@
 """
-The pipeline's threads: what of one stereo pair may run at the same time.
+The pipeline's workers: what of one stereo pair runs next to the caller, and where.
 
-Two kinds of concurrency pay on a small CPU, measured on the KITTI clip (two cores; see
-``benchmarks/bench_speed.py`` and docs/benchmarks.md):
+The tracker's replenishment (detection of new corners, their stereo matches and refinement,
+``tracking.replenish``) needs nothing of the motion estimate, so it runs while the caller
+estimates the motion. Where it runs is ``pipeline.worker``:
 
-* OpenCV's own threads spread the points of one KLT call (``cv2.setNumThreads``);
-* the tracker's replenishment (detection of new corners and their stereo matches, mostly
-  OpenCV calls that release the GIL) runs on a worker thread while the caller estimates the
-  motion (NumPy on small arrays, which holds the GIL most of the time).
+* ``process`` (default): a worker process of its own (``python -m stereo_vo_ros.parallel``),
+  fed through a socket with the images in shared memory. Only a process overlaps for real: the
+  estimate and the replenishment are NumPy on small arrays and Python between OpenCV calls,
+  which hold the GIL, so in one process they take turns.
+* ``thread``: a background thread (no extra process; measured to overlap little).
 
-Finer splits (the affine refinement's points over two threads, the detection crops) were
-measured to cost more CPU than they saved: NumPy on arrays of a few thousand elements holds the
-GIL between its short calls, so two such threads take turns instead of overlapping.
+With one thread (``pipeline.threads: 1``) everything runs inline in the caller's thread, in the
+same order; the results are the same either way. ``Workers`` belongs to one ``StereoOdometry``
+(no module state: several pipelines in one process each have their own worker). OpenCV's
+thread count is per process: the last pipeline created or reconfigured sets it.
 
-``Workers(threads)`` belongs to one ``StereoOdometry`` (no module state: several pipelines in
-one process each have their own). With one thread everything runs inline in the caller's
-thread, in the same order as with more; the results are the same at any thread count.
-OpenCV's thread count is per process: the last pipeline created or reconfigured sets it.
+Linux is where the process worker runs (it maps the images from ``/dev/shm``); elsewhere, or
+when the worker cannot start or dies, the work runs in the caller's thread (logged once).
 """
 
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
+import importlib
+import logging
+import mmap
+from multiprocessing.connection import Connection
+from multiprocessing.shared_memory import SharedMemory
 import os
+import pickle
+import socket
+import subprocess
+import sys
 from typing import Any, Callable
 
 import cv2
+import numpy as np
+
+logger = logging.getLogger(__name__)
 
 #: ``pipeline.threads: 0`` uses the machine's cores but one, at most this many.
 MAX_AUTO_THREADS = 4
+#: Arrays of at least this many bytes travel to the worker process in shared memory.
+SHARED_MIN_BYTES = 1 << 16
+#: Where POSIX shared memory shows as files (Linux).
+SHM_DIR = '/dev/shm'
+#: Kinds of worker (``pipeline.worker``).
+WORKER_KINDS = ('process', 'thread')
 
 
 def auto_threads(requested: int) -> int:
@@ -36,9 +55,8 @@ def auto_threads(requested: int) -> int:
     Return the thread count for ``pipeline.threads``.
 
     0: the machine's cores but one (left to the camera driver, DDS and the rest of the robot),
-    at least one and at most ``MAX_AUTO_THREADS``. On two cores that is one thread: there a
-    second bought 5-9 % of the time per pair for 35 % more CPU (OpenCV's idle threads wait
-    actively), a bad trade on a CPU the robot shares.
+    1 to 4. On two cores that is one thread: there the worker process was measured to save
+    time in some runs and to cost time in others (docs/benchmarks.md).
     """
     if requested > 0:
         return int(requested)
@@ -62,41 +80,250 @@ class _Done:
         return self._value
 
 
+class _Shared:
+    """Placeholder of an array sent through shared memory: where it lies in the block."""
+
+    def __init__(self, offset: int, shape: tuple, dtype: str) -> None:
+        self.offset, self.shape, self.dtype = offset, shape, dtype
+
+
+class _ProcessJob:
+    """The result of one job on the worker process (``result`` waits for it, once)."""
+
+    def __init__(self, worker: 'ProcessWorker', fn: Callable[..., Any], args: tuple) -> None:
+        self._worker, self._fn, self._args = worker, fn, args
+        self._done: _Done | None = None
+
+    def result(self) -> Any:
+        if self._done is None:
+            self._done = self._worker._receive(self._fn, self._args)
+        return self._done.result()
+
+
+class ProcessWorker:
+    """
+    One worker process that runs submitted functions, one at a time, in submission order.
+
+    ``preload`` names modules the process imports as it starts (the ones its jobs need), so
+    that the first job does not wait for them. ``submit(fn, *args)`` sends ``fn`` (a
+    module-level function, pickled by name) and its arguments; NumPy arrays of
+    ``SHARED_MIN_BYTES`` or more are copied into a shared-memory block instead of pickled. The
+    next ``submit`` waits for the last result. Whatever cannot go (arguments that do not
+    pickle) or does not come back (the process died) runs inline.
+    """
+
+    def __init__(self, preload: tuple[str, ...] = ()) -> None:
+        self._preload = tuple(preload)
+        self._conn: Connection | None = None
+        self._proc: subprocess.Popen | None = None
+        self._shm: SharedMemory | None = None
+        self._pending: _ProcessJob | None = None
+        self._broken = False
+        self._start()
+
+    @staticmethod
+    def available() -> bool:
+        """Return True where the worker process can map shared memory (Linux)."""
+        return os.path.isdir(SHM_DIR) and sys.platform.startswith('linux')
+
+    def _start(self) -> None:
+        parent, child = socket.socketpair()
+        try:
+            self._proc = subprocess.Popen(
+                [sys.executable, '-m', 'stereo_vo_ros.parallel', str(child.fileno()),
+                 *self._preload],
+                pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL)
+        except OSError as exc:
+            logger.warning('cannot start the worker process (%s); working in one thread', exc)
+            parent.close()
+            self._broken = True
+            return
+        finally:
+            child.close()
+        self._conn = Connection(parent.detach())
+
+    @property
+    def alive(self) -> bool:
+        """Return True while the process takes work."""
+        return not self._broken and self._proc is not None
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> _ProcessJob | _Done:
+        """Start ``fn(*args)`` in the process; ``.result()`` returns or raises its outcome."""
+        if self._pending is not None:
+            self._pending.result()
+        if not self.alive:
+            return _Done(fn, args)
+        try:
+            message = pickle.dumps((fn, self._pack(args)), protocol=pickle.HIGHEST_PROTOCOL)
+        except (pickle.PicklingError, TypeError, AttributeError) as exc:
+            logger.debug('job does not pickle (%s); run inline', exc)
+            return _Done(fn, args)
+        try:
+            self._conn.send_bytes(message)
+        except OSError as exc:
+            self._lost(exc)
+            return _Done(fn, args)
+        self._pending = _ProcessJob(self, fn, args)
+        return self._pending
+
+    def _pack(self, args: tuple) -> tuple:
+        """Copy the large arrays of ``args`` into the shared block; return the arguments sent."""
+        large = {}
+        for arg in args:
+            if isinstance(arg, np.ndarray) and arg.nbytes >= SHARED_MIN_BYTES:
+                large.setdefault(id(arg), arg)
+        offsets, size = {}, 0
+        for key, arr in large.items():
+            offsets[key] = size
+            size += -(-arr.nbytes // 64) * 64
+        if size and (self._shm is None or self._shm.size < size):
+            self._release_block()
+            self._shm = SharedMemory(create=True, size=size)
+        sent = []
+        for arg in args:
+            if id(arg) in offsets and large[id(arg)] is arg:
+                offset = offsets[id(arg)]
+                view = np.ndarray(arg.shape, arg.dtype, buffer=self._shm.buf, offset=offset)
+                view[...] = arg
+                del view
+                sent.append(_Shared(offset, arg.shape, arg.dtype.str))
+            else:
+                sent.append(arg)
+        return (self._shm.name if large else None, tuple(sent))
+
+    def _receive(self, fn: Callable[..., Any], args: tuple) -> _Done:
+        self._pending = None
+        if self._conn is None:  # closed meanwhile
+            return _Done(fn, args)
+        try:
+            status, value = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            self._lost(exc)
+            return _Done(fn, args)
+        if status == 'ok':
+            return _Done(lambda: value, ())
+        return _Done(_raise, (value,))
+
+    def cpu_seconds(self) -> float:
+        """Return the CPU time the process has used so far (user + system, seconds; 0 if gone)."""
+        if self._proc is None:
+            return 0.0
+        try:
+            with open(f'/proc/{self._proc.pid}/stat') as stat:
+                fields = stat.read().rsplit(')', 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+        except (OSError, ValueError, IndexError):
+            return 0.0
+
+    def _lost(self, exc: BaseException) -> None:
+        logger.warning('worker process lost (%s); working in one thread from now on', exc)
+        self.close()
+
+    def _release_block(self) -> None:
+        if self._shm is not None:
+            self._shm.close()
+            self._shm.unlink()
+            self._shm = None
+
+    def close(self) -> None:
+        """Stop the process and free the shared block (later work runs inline)."""
+        self._pending = None
+        self._broken = True
+        if self._conn is not None:
+            try:
+                self._conn.send_bytes(b'')
+            except OSError:
+                pass
+            self._conn.close()
+            self._conn = None
+        if self._proc is not None:
+            try:
+                self._proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+            self._proc = None
+        self._release_block()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
+
+
+def _raise(exc: Exception) -> None:
+    raise exc
+
+
 class Workers:
     """
-    One background thread for work that overlaps the caller's, and OpenCV's thread count.
+    Where ``submit``-ted work runs next to the caller, and OpenCV's thread count.
 
     Parameters
     ----------
     threads : int
         Threads to use, the caller's included (0: ``auto_threads``). With more than one, a
-        background thread takes ``submit``-ted work and OpenCV uses ``threads`` threads.
+        worker (``kind``) takes ``submit``-ted work and OpenCV uses ``threads - 1`` threads in
+        the caller's process.
     set_opencv : bool
-        Set OpenCV's thread count (process-wide) to ``threads``.
+        Set OpenCV's thread count (process-wide).
+    kind : str
+        ``process`` (a worker process; a thread where no process can run) or ``thread``.
+    preload : tuple of str
+        Modules a worker process imports as it starts.
 
     """
 
-    def __init__(self, threads: int = 1, set_opencv: bool = True) -> None:
+    def __init__(self, threads: int = 1, set_opencv: bool = True, kind: str = 'process',
+                 preload: tuple[str, ...] = ()) -> None:
+        if kind not in WORKER_KINDS:
+            raise ValueError(f'worker kind must be one of {WORKER_KINDS}, got {kind!r}')
         self.threads = auto_threads(threads)
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix='stereo_vo') \
-            if self.threads > 1 else None
+        #: The kind asked for; ``kind`` is the one running (``inline`` with one thread).
+        self.requested = kind
+        self._pool: ThreadPoolExecutor | None = None
+        self._process: ProcessWorker | None = None
+        if self.threads > 1:
+            if kind == 'process' and ProcessWorker.available():
+                self._process = ProcessWorker(preload)
+            else:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix='stereo_vo')
+        self.kind = 'process' if self._process is not None else (
+            'thread' if self._pool is not None else 'inline')
         if set_opencv:
-            cv2.setNumThreads(self.threads)
+            cv2.setNumThreads(max(1, self.threads - 1))
 
     def close(self) -> None:
-        """Stop the background thread (the object then runs everything inline)."""
+        """Stop the worker (the object then runs everything inline)."""
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
+        if self._process is not None:
+            self._process.close()
+            self._process = None
         self.threads = 1
+        self.kind = 'inline'
 
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Future | _Done:
-        """
-        Start ``fn(*args)`` in the background and return at once; ``.result()`` joins it.
+    def wait_ready(self) -> None:
+        """Return once a worker process has started and imported its modules (benchmarks)."""
+        if self._process is not None:
+            self._process.submit(os.getpid).result()
 
-        With one thread ``fn`` runs inline before this returns; its exception, if any, is
-        raised by ``.result()`` either way.
+    def worker_cpu_seconds(self) -> float:
+        """Return the CPU time of the worker process so far (seconds; 0 without one)."""
+        return 0.0 if self._process is None else self._process.cpu_seconds()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future | _ProcessJob | _Done:
         """
+        Start ``fn(*args)`` on the worker and return at once; ``.result()`` joins it.
+
+        Inline (one thread), ``fn`` runs before this returns; its exception, if any, is raised
+        by ``.result()`` either way. On a process, ``fn`` must be a module-level function;
+        arguments that do not pickle make the call run inline.
+        """
+        if self._process is not None:
+            return self._process.submit(fn, *args)
         if self._pool is None:
             return _Done(fn, args)
         return self._pool.submit(fn, *args)
@@ -105,3 +332,60 @@ class Workers:
 def inline() -> Workers:
     """Return workers that run everything in the caller's thread and leave OpenCV alone."""
     return Workers(1, set_opencv=False)
+
+
+def _attach(name: str) -> tuple[mmap.mmap, int]:
+    """Map the shared block ``name`` (created by the caller) into this process."""
+    fd = os.open(os.path.join(SHM_DIR, name.lstrip('/')), os.O_RDWR)
+    try:
+        size = os.fstat(fd).st_size
+        return mmap.mmap(fd, size), size
+    finally:
+        os.close(fd)
+
+
+def serve(conn: Connection, preload: tuple[str, ...] = ()) -> None:
+    """
+    Run jobs from ``conn`` until it closes or sends an empty message (the worker's loop).
+
+    ``preload``: modules to import first.
+    """
+    cv2.setNumThreads(1)
+    for name in preload:
+        importlib.import_module(name)
+    block: tuple[str, mmap.mmap] | None = None
+    while True:
+        try:
+            message = conn.recv_bytes()
+        except (EOFError, OSError):
+            break
+        if not message:
+            break
+        args: list = []
+        try:
+            fn, (name, packed) = pickle.loads(message)
+            if name is not None and (block is None or block[0] != name):
+                if block is not None:
+                    block[1].close()
+                block = (name, _attach(name)[0])
+            for arg in packed:
+                if isinstance(arg, _Shared):
+                    arg = np.ndarray(arg.shape, np.dtype(arg.dtype), buffer=block[1],
+                                     offset=arg.offset)
+                args.append(arg)
+            reply = ('ok', fn(*args))
+        except Exception as exc:  # noqa: BLE001 - raised in the caller by result()
+            reply = ('error', exc)
+        args.clear()
+        try:
+            conn.send(reply)
+        except Exception as exc:  # noqa: BLE001 - an error that does not pickle
+            conn.send(('error', RuntimeError(f'{type(reply[1]).__name__}: {exc}')))
+        reply = None  # no view of the shared block outlives the job
+    conn.close()
+
+
+if __name__ == '__main__':
+    # The loop of the importable module, so that its classes are the ones the caller pickles.
+    from stereo_vo_ros.parallel import serve as _serve
+    _serve(Connection(int(sys.argv[1])), tuple(sys.argv[2:]))

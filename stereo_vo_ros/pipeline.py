@@ -36,6 +36,8 @@ from .road.vehicle_motion import lateral_constraint
 from .tracking.tracker import PendingTrack, StereoTracker
 
 LOG = logging.getLogger(__name__)
+#: What a worker process imports as it starts: the replenishment it runs.
+REPLENISH_MODULE = 'stereo_vo_ros.tracking.replenish'
 
 #: A stamp this far (s) before the previous one means the input restarted (e.g. a looping bag).
 RESTART_JUMP_S = 1.0
@@ -102,8 +104,8 @@ class StereoOdometry:
 
     def __init__(self, config: Config | None = None) -> None:
         self.config = config or Config()
-        #: Worker threads of every stage (``pipeline.threads``).
-        self.workers = Workers(self.config.pipeline.threads)
+        #: Where the replenishment runs (``pipeline.threads``, ``pipeline.worker``).
+        self.workers = self._workers(self.config)
         self.tracker = StereoTracker(self.config.tracker, self.config.bucketing, self.workers)
         self.estimator = MotionEstimator(self.config)
         self.road = RoadAligner(self.config.road, self.config.ransac)
@@ -148,12 +150,20 @@ class StereoOdometry:
         self.estimator.config = config
         self.road.cfg, self.road.ransac = config.road, config.ransac
         self.rig.cfg = config.rig
-        if auto_threads(config.pipeline.threads) != self.workers.threads:
+        pipe = config.pipeline
+        if auto_threads(pipe.threads) != self.workers.threads or \
+                (self.workers.threads > 1 and pipe.worker != self.workers.requested):
             self.workers.close()
-            self.workers = self.tracker.workers = Workers(config.pipeline.threads)
+            self.workers = self.tracker.workers = self._workers(config)
+
+    @staticmethod
+    def _workers(config: Config) -> Workers:
+        """Return the workers of ``pipeline.threads`` and ``pipeline.worker``."""
+        return Workers(config.pipeline.threads, kind=config.pipeline.worker,
+                       preload=(REPLENISH_MODULE,))
 
     def close(self) -> None:
-        """Stop the worker threads; the pipeline then runs in the caller's thread only."""
+        """Stop the worker; the pipeline then runs in the caller's thread only."""
         self.workers.close()
 
     @property
@@ -379,7 +389,8 @@ class StereoOdometry:
 
     @staticmethod
     def _predictor(prev_calib: StereoCalibration, calib: StereoCalibration, dt: float,
-                   velocity: np.ndarray, rig: RigCalibrator | None = None):
+                   velocity: np.ndarray, rig: RigCalibrator | None = None
+                   ) -> 'ConstantVelocityPrior':
         """
         Return the constant-velocity prior of one velocity (6,) (m/s, rad/s).
 
@@ -390,20 +401,7 @@ class StereoOdometry:
         if rig is not None and rig.active():
             H_prev = rig.homography_inverse(prev_calib)
             H_cur = np.linalg.inv(rig.homography_inverse(calib))
-
-        def predict(prev_left: np.ndarray, prev_right: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-            if len(prev_left) == 0:
-                return prev_left.copy(), prev_right.copy()
-            right = prev_right if H_prev is None else apply_homography(H_prev, prev_right)
-            pred = TransferModel(prev_calib, prev_left, right, dt, calib).predict(velocity)
-            if H_cur is not None:
-                pred[:, 2:] = apply_homography(H_cur, pred[:, 2:])
-            bad = ~np.all(np.isfinite(pred), axis=1)
-            pred[bad, :2] = prev_left[bad]
-            pred[bad, 2:] = prev_right[bad]
-            return pred[:, :2], pred[:, 2:]
-        return predict
+        return ConstantVelocityPrior(prev_calib, calib, dt, velocity, H_prev, H_cur)
 
     def _track(self, frame: StereoFrame, prior, timings: dict[str, float]) -> PendingTrack:
         """Track the pair; its replenishment runs on while the caller estimates the motion."""
@@ -468,3 +466,36 @@ class StereoOdometry:
             road_fused=road_fused, vehicle_fused=vehicle_fused,
             rig=self.rig.estimate(self._prev_calib) if self.config.rig.enabled else None)
         return res
+
+
+class ConstantVelocityPrior:
+    """
+    The tracker's motion prior: current pixels predicted from previous ones at one velocity.
+
+    A plain object (picklable: the tracker's replenishment may use it in a worker process).
+    ``velocity`` (6,) is (m/s, rad/s) in the previous left camera frame; ``H_prev`` and
+    ``H_cur`` (3, 3) or None are the rig refinement's right-image corrections of the previous
+    and current pair.
+    """
+
+    def __init__(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float,
+                 velocity: np.ndarray, H_prev: np.ndarray | None = None,
+                 H_cur: np.ndarray | None = None) -> None:
+        self.prev_calib, self.calib, self.dt = prev_calib, calib, dt
+        self.velocity = velocity
+        self.H_prev, self.H_cur = H_prev, H_cur
+
+    def __call__(self, prev_left: np.ndarray, prev_right: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Return the predicted (N, 2) left and right ideal pixels of (N, 2) previous ones."""
+        if len(prev_left) == 0:
+            return prev_left.copy(), prev_right.copy()
+        right = prev_right if self.H_prev is None else apply_homography(self.H_prev, prev_right)
+        pred = TransferModel(self.prev_calib, prev_left, right, self.dt,
+                             self.calib).predict(self.velocity)
+        if self.H_cur is not None:
+            pred[:, 2:] = apply_homography(self.H_cur, pred[:, 2:])
+        bad = ~np.all(np.isfinite(pred), axis=1)
+        pred[bad, :2] = prev_left[bad]
+        pred[bad, 2:] = prev_right[bad]
+        return pred[:, :2], pred[:, 2:]

@@ -37,6 +37,9 @@ from ..estimation.camera import StereoCalibration
 KLT_EPSILON_PX = 0.01
 #: Default border of ``inside_image`` (pixels).
 BORDER_PX = 1.0
+#: Pyramid levels of the reverse passes (forward-backward, left-right, bi-circular return);
+#: they start at the point they should return to, so the base image suffices.
+REVERSE_PYRAMID_LEVELS = 0
 #: The two readings of eq. 7.
 BICIRCULAR_MODES = ('roundtrip', 'closure')
 

@@ -41,12 +41,13 @@ import numpy as np
 
 from .adaptive_threshold import bicircular_threshold
 from .affine_klt import refine_affine
-from .detection import bucket_ids, detect_corners, plan_detection
+from .detection import plan_detection
 from .features import as_grey_u8, empty_correspondences, FeatureSet
 from .klt_checks import (bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint,
                          disparity_in_range, eigen_ratio, flow_edge_ratio, lk_pass,
-                         round_trip_error)
+                         REVERSE_PYRAMID_LEVELS, round_trip_error)
 from .photometric import PhotometricMatcher
+from .replenish import ExpectedFlow, NewCorners, replenish, ReplenishJob
 from .stats import (CHECKS, PASSES, PendingTrack, STAGES, TrackerStats,  # noqa: F401
                     TrackResult)  # (re-exported)
 from ..config import BucketingConfig, TrackerConfig
@@ -59,14 +60,11 @@ logger = logging.getLogger(__name__)
 
 #: Clock of the per-stage timings (seconds); a benchmark may swap in ``time.thread_time``.
 CLOCK = time.perf_counter
-#: Pyramid levels of the reverse passes (forward-backward, left-right, bi-circular return);
-#: they start at the point they should return to, so the base image suffices.
-REVERSE_PYRAMID_LEVELS = 0
-#: A new corner closer than this to a tracked feature starts its stereo search at that
-#: feature's disparity with ``predicted_pyramid_levels`` (pixels).
-NEIGHBOUR_RADIUS_PX = 80.0
 #: A searched bucket that gave no new feature is skipped for this many frames (sky, road).
 BARREN_BUCKET_FRAMES = 8
+#: After an early replenishment, a second one runs at once (in the caller's thread) when fewer
+#: than this fraction of the features it counted on survived the later checks.
+TOP_UP_FRACTION = 0.5
 #: Motion prior: (prev_left_ideal (N, 2), prev_right_ideal (N, 2)) -> (cur_left_pred (N, 2),
 #: cur_right_pred (N, 2)), all float64 ideal pixels.
 Prior = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -124,6 +122,11 @@ class StereoTracker:
         """Forget every feature and the previous images; the next pair re-initialises."""
         self._settled()  # a running replenishment ends first; its features are dropped anyway
         self._pending = None
+        #: Features the checks after the temporal ones, and after the stereo ones, removed in
+        #: the last pair.
+        self._later_losses = (0, 0)
+        #: Features an early replenishment of the pair counted on (None: none started).
+        self._planned_kept: int | None = None
         self._calib: StereoCalibration | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
         self._floats: list[tuple[np.ndarray, np.ndarray]] = []
@@ -217,8 +220,13 @@ class StereoTracker:
         if tuple(calib.size) != (left8.shape[1], left8.shape[0]):
             raise ImageError(f'image size {left8.shape[1]}x{left8.shape[0]} does not match the '
                              f'calibration size {calib.size[0]}x{calib.size[1]}')
+        # Own copies: the tracker keeps the pair and its replenishment may read it after this
+        # returns, while the caller may reuse its image buffers.
+        left8 = left8.copy() if np.may_share_memory(left8, left) else left8
+        right8 = right8.copy() if np.may_share_memory(right8, right) else right8
         stats = TrackerStats()
         self._photo.enabled = bool(self.cfg.photometric_compensation)
+        new = None
         if self._prev is None or self._prev[0].shape != left8.shape or \
                 not calib.same_as(self._calib):
             if self._prev is not None:
@@ -231,29 +239,43 @@ class StereoTracker:
             corr, raw = empty_correspondences(), empty_correspondences()
             klt_right = np.zeros((0, 2))
         else:
-            corr, raw, klt_right = self._track_existing(left8, right8, calib, prior, stats)
-        # Own copies: the caller may reuse its image buffers.
-        self._prev = (left8.copy() if np.may_share_memory(left8, left) else left8,
-                      right8.copy() if np.may_share_memory(right8, right) else right8)
-        # Replenishment needs nothing the caller computes from the quadruples: it runs on a
-        # worker thread (inline with one thread) while the caller estimates the motion.
-        self._pending = self.workers.submit(
-            self._replenish_and_finish, left8, right8, calib, stats,
-            prior if stats.used_prior else None, corr, raw, t_start)
+            corr, raw, klt_right, new = self._track_existing(left8, right8, calib, prior, stats)
+        self._prev = (left8, right8)
+        if stats.initialized or self.cfg.replenish_after not in ('stereo', 'temporal'):
+            # Replenishment after every check: from the features that survived them.
+            f = self._feats
+            new = self._start_replenishment(
+                left8, right8, calib, stats, prior if stats.used_prior else None,
+                f.left_raw, f.right_raw, f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f),
+                None, None)
+        self._pending = _Finish(self, left8, right8, stats, corr, raw, new, t_start)
         return PendingTrack(corr, raw, stats, klt_right, self._pending)
 
-    def _replenish_and_finish(self, left8: np.ndarray, right8: np.ndarray,
-                              calib: StereoCalibration, stats: TrackerStats,
-                              prior: Prior | None, corr: Correspondences, raw: Correspondences,
-                              t_start: float) -> TrackResult:
-        """Replenish the features of the pair just tracked and return the whole result."""
-        self._replenish(left8, right8, calib, stats, prior)
-        self._photo.carry(((left8, self._prev[0]), (right8, self._prev[1])))
-        stats.n_features = len(self._feats)
-        stats.timings_ms['total'] = (CLOCK() - t_start) * 1e3
-        f = self._feats
-        return TrackResult(corr, raw, f.left_raw.astype(np.float64),
-                           f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
+    def _start_replenishment(self, left: np.ndarray, right: np.ndarray,
+                             calib: StereoCalibration, stats: TrackerStats,
+                             prior: Prior | None, left_raw: np.ndarray, right_raw: np.ndarray,
+                             disparity: np.ndarray, n_kept: int, pts_left: np.ndarray | None,
+                             pts_right: np.ndarray | None):
+        """
+        Plan the replenishment and hand it to the workers; return its pending result or None.
+
+        ``left_raw``, ``right_raw`` (N, 2): the features corners keep away from and take their
+        stereo start from; ``disparity`` (N,) their ideal disparities (pixels); ``n_kept`` the
+        features expected to stay (corners wanted: ``max_features - n_kept``); ``pts_left``,
+        ``pts_right``: the points the stereo pass maps the right image's brightness with
+        (None: the whole images).
+        """
+        t = CLOCK()
+        job = self._replenish_job(left, calib, prior, left_raw, right_raw, disparity, n_kept)
+        stats.timings_ms['detection'] += (CLOCK() - t) * 1e3
+        if job is None:
+            return None
+        right_m, _ = self._matched(left, right, pts_left, pts_right, stats)
+        if self.workers.threads > 1:
+            return self.workers.submit(replenish, left, right, right_m, job)
+        # Inline: the float images the refinement converted are reused.
+        return self.workers.submit(replenish, left, right, right_m, job, CLOCK,
+                                   self._float(left), self._float(right))
 
     def join(self) -> TrackResult | None:
         """
@@ -292,41 +314,31 @@ class StereoTracker:
         raw_r[bad] = np.nan
         return raw_l, raw_r
 
-    def _expected_flow(self, prior: Prior | None, calib: StereoCalibration
-                       ) -> Callable[[np.ndarray], np.ndarray] | None:
+    def _expected_flow(self, prior: Prior | None, calib: StereoCalibration,
+                       disparity: np.ndarray) -> ExpectedFlow | None:
         """
         Return the expected displacement of new corners into the next pair, or None.
 
-        The motion prior of this pair, applied again from here (constant velocity), to each
-        corner at the median disparity of the tracked features: the direction of the flow is
-        what the detection check needs, and it hardly depends on the depth. None without a
-        prior, without tracked features or with the check off.
+        The motion prior of this pair at the median of the tracked features' ideal disparities
+        ``disparity`` (``ExpectedFlow``). None without a prior, without a positive disparity or
+        with the check off.
         """
-        f = self._feats
-        if prior is None or not len(f) or self.cfg.min_flow_edge_ratio <= 0:
+        if prior is None or self.cfg.min_flow_edge_ratio <= 0:
             return None
-        disparity = f.left_ideal[:, 0] - f.right_ideal[:, 0]
         disparity = disparity[np.isfinite(disparity) & (disparity > 0)]
         if not len(disparity):
             return None
-        offset = np.array([float(np.median(disparity)), 0.0])
-
-        def flow(raw: np.ndarray) -> np.ndarray:
-            ideal = calib.undistort_left(raw)
-            pred = np.asarray(prior(ideal, ideal - offset)[0], np.float64).reshape(-1, 2)
-            if pred.shape != raw.shape:
-                return np.full(raw.shape, np.nan)
-            return calib.distort_left(pred) - raw
-        return flow
+        return ExpectedFlow(prior, calib, float(np.median(disparity)))
 
     def _track_existing(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
                         prior: Prior | None, stats: TrackerStats
-                        ) -> tuple[Correspondences, Correspondences, np.ndarray]:
+                        ) -> tuple[Correspondences, Correspondences, np.ndarray, object]:
         """
         Track the features of t1 into the pair t2 through every enabled check.
 
-        Returns the quadruples (ideal and raw pixels) and the raw right points of their stereo
-        KLT pass before the affine refinement ((N, 2) float64).
+        Returns the quadruples (ideal and raw pixels), the raw right points of their stereo
+        KLT pass before the affine refinement ((N, 2) float64), and the pending replenishment
+        when it started during the tracking (with a worker; else None).
         """
         cfg, checks = self.cfg, self.checks
         prev_left, prev_right = self._prev
@@ -396,6 +408,22 @@ class StereoTracker:
         if pred is not None:
             predicted = pred[1][alive] - pred[0][alive]
             offset = np.where(np.isfinite(predicted), predicted, offset)
+        new = None
+        n_temporal = len(alive)
+        if cfg.replenish_after == 'temporal':
+            # The replenishment starts here (with a worker: next to the stereo pass and the
+            # later checks), from the features that passed the temporal checks with the
+            # disparities they were matched at in the last pair: new corners start their stereo
+            # search from a measured disparity, not from the prediction the stereo pass is
+            # about to check (see TrackerConfig.replenish_after).
+            spent = clock()
+            measured = (f.right_raw[alive] - f.left_raw[alive]).astype(np.float64)
+            self._planned_kept = n_temporal - self._later_losses[0]
+            new = self._start_replenishment(
+                left, right, calib, stats, prior if pred is not None else None, cur_l[alive],
+                cur_l[alive] + measured, f.left_ideal[alive, 0] - f.right_ideal[alive, 0],
+                n_temporal - self._later_losses[0], cur_l[alive], cur_l[alive] + offset)
+            t += clock() - spent
         npts['stereo_fwd'] = len(alive)
         right_m, spent = self._matched(left, right, cur_l[alive], cur_l[alive] + offset, stats)
         t += spent
@@ -432,6 +460,15 @@ class StereoTracker:
             ok &= rng
         alive, cur_r, ideal_l, ideal_r = alive[ok], cur_r[ok], ideal_l[ok], ideal_r[ok]
         ms['stereo_bwd'] = (clock() - t) * 1e3
+        n_stereo = len(alive)
+        if cfg.replenish_after == 'stereo':
+            self._planned_kept = n_stereo - self._later_losses[1]
+            # From here, with the stereo matches as the KLT pass found them: the worker overlaps
+            # the refinement, the bi-circular check and the motion estimate.
+            new = self._start_replenishment(
+                left, right, calib, stats, prior if pred is not None else None, cur_l[alive],
+                cur_r, ideal_l[:, 0] - ideal_r[:, 0], n_stereo - self._later_losses[1], None,
+                None)
         klt_r = cur_r.astype(np.float64)
         if cfg.affine_refinement and len(alive):
             cur_r = self._refine(left, right, cur_l[alive], cur_r, stats, stereo=True)
@@ -467,6 +504,7 @@ class StereoTracker:
             ms['bicircular'] = (clock() - t) * 1e3
 
         stats.n_tracked = len(alive)
+        self._later_losses = (n_temporal - len(alive), n_stereo - len(alive))
         prev = f.take(alive)
         cur_l = cur_l[alive]
         corr = Correspondences(prev.left_ideal.copy(), prev.right_ideal.copy(), ideal_l.copy(),
@@ -475,7 +513,7 @@ class StereoTracker:
                               prev.right_raw.astype(np.float64), cur_l.astype(np.float64),
                               cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
         self._feats = FeatureSet(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
-        return corr, raw, klt_r
+        return corr, raw, klt_r, new
 
     def _matched(self, reference: np.ndarray, img: np.ndarray, pts_reference: np.ndarray | None,
                  pts_img: np.ndarray | None, stats: TrackerStats) -> tuple[np.ndarray, float]:
@@ -515,85 +553,109 @@ class StereoTracker:
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 
-    def _replenish(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
-                   stats: TrackerStats, prior: Prior | None = None) -> None:
-        """Detect corners where features are missing and match them into the right image."""
-        cfg, f = self.cfg, self._feats
-        need = cfg.max_features - len(f)
+    def _replenish_job(self, left: np.ndarray, calib: StereoCalibration, prior: Prior | None,
+                       left_raw: np.ndarray, right_raw: np.ndarray, disparity: np.ndarray,
+                       n_kept: int) -> ReplenishJob | None:
+        """Plan a replenishment (None: no corner is needed); see ``_start_replenishment``."""
+        cfg = self.cfg
+        need = cfg.max_features - n_kept
         if need <= 0:
-            return
-        win, iters = cfg.win_size_px, cfg.max_iterations
+            return None
         bcfg = self.bucketing_cfg
-        size = (left.shape[1], left.shape[0])
-        t = CLOCK()
         chosen = None
         if bcfg.enabled:
             if self._barren is None or self._barren.shape != (bcfg.rows, bcfg.cols):
                 self._barren = np.zeros((bcfg.rows, bcfg.cols), np.int64)
-            chosen = plan_detection(f.left_raw, need, size, bcfg, self._barren > 0)
+            size = (left.shape[1], left.shape[0])
+            chosen = plan_detection(left_raw, need, size, bcfg, self._barren > 0)
             self._barren = np.maximum(self._barren - 1, 0)
-        pts, found = detect_corners(left, f.left_raw, need, cfg, bcfg, chosen,
-                                    self._expected_flow(prior, calib))
-        stats.timings_ms['detection'] = (CLOCK() - t) * 1e3
-        stats.n_detected = len(pts)
-        if chosen is not None and len(pts):
-            # Buckets searched without a corner are skipped for a while (not when the whole
-            # image gave nothing: a black or covered frame says nothing about the scene).
-            self._barren[chosen & (found.reshape(chosen.shape) == 0)] = BARREN_BUCKET_FRAMES
-        if not len(pts):
-            return
-        submitted = pts
-        if cfg.min_eigen_ratio > 0:
-            pts = pts[eigen_ratio(left, pts, win) >= cfg.min_eigen_ratio]
-            if not len(pts):
-                return
-        t = CLOCK()
-        # Corners near a tracked feature start at its disparity (raw pixel offset) and need
-        # few pyramid levels; the others are searched with the full pyramid.
-        guided = np.zeros(len(pts), bool)
-        guess = pts.copy()
-        if len(f):
-            d2 = ((pts[:, None, :] - f.left_raw[None, :, :]) ** 2).sum(axis=2)
-            nearest = np.argmin(d2, axis=1)
-            guided = d2[np.arange(len(pts)), nearest] <= NEIGHBOUR_RADIUS_PX ** 2
-            guess = pts + (f.right_raw[nearest] - f.left_raw[nearest])
-        pr = np.empty_like(pts)
-        ok = np.zeros(len(pts), bool)
-        stats.pass_points['new_stereo_fwd'] = len(pts)
-        right_m, spent = self._matched(left, right, None, None, stats)
-        t += spent
-        for sel, levels in ((guided, cfg.predicted_pyramid_levels),
-                            (~guided, cfg.pyramid_levels)):
-            if sel.any():
-                pr[sel], ok[sel] = lk_pass(left, right_m, pts[sel], guess[sel], levels, win,
-                                           iters)
-        pts, pr = pts[ok], pr[ok]
-        il, ir = calib.undistort_left(pts), calib.undistort_right(pr)
-        ok = disparity_in_range(calib, il, ir, cfg.min_disparity_px, cfg.max_disparity_px)
-        if self.checks.disparity_constraint:
-            ok &= disparity_constraint(calib, il, ir, cfg.disparity_y_threshold_px)
-        pts, pr, il, ir = pts[ok], pr[ok], il[ok], ir[ok]
-        stats.timings_ms['stereo_fwd'] += (CLOCK() - t) * 1e3
-        t = CLOCK()
-        stats.pass_points['new_stereo_bwd'] = len(pts)
-        back, ok = lk_pass(right_m, left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
-        ok &= round_trip_error(pts, back) < cfg.lr_threshold_px
-        stats.timings_ms['stereo_bwd'] += (CLOCK() - t) * 1e3
-        if cfg.affine_refinement and ok.any():
-            pr[ok] = self._refine(left, right, pts[ok], pr[ok], stats, stereo=True)
-            ir[ok] = calib.undistort_right(pr[ok])
-        n = int(np.count_nonzero(ok))
+        return ReplenishJob(cfg, bcfg, calib, np.array(left_raw, np.float32),
+                            np.array(right_raw, np.float32), need, chosen,
+                            self._expected_flow(prior, calib, disparity),
+                            self.checks.disparity_constraint)
+
+    def _add(self, new: NewCorners, stats: TrackerStats) -> None:
+        """Add the corners of a replenishment to the features; mark its barren buckets."""
+        for key, value in new.timings_ms.items():
+            stats.timings_ms[key] += value
+        stats.pass_points.update(new.pass_points)
+        stats.n_detected = new.n_detected
+        if new.barren is not None and self._barren is not None \
+                and self._barren.shape == new.barren.shape:
+            self._barren[new.barren] = BARREN_BUCKET_FRAMES
+        # A replenishment started before the later checks may bring more than there is room for.
+        n = min(len(new.left_raw), max(self.cfg.max_features - len(self._feats), 0))
         stats.n_added = n
-        if chosen is not None and n:
-            # Buckets whose corners all failed the stereo match are skipped for a while.
-            tried = np.bincount(bucket_ids(submitted, size, bcfg), minlength=chosen.size)
-            kept = np.bincount(bucket_ids(pts[ok], size, bcfg), minlength=chosen.size)
-            self._barren[((tried > 0) & (kept == 0)).reshape(chosen.shape)] = \
-                BARREN_BUCKET_FRAMES
         if not n:
             return
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
-        new = FeatureSet(ids, np.zeros(n, np.int64), pts[ok].astype(np.float32),
-                         pr[ok].astype(np.float32), il[ok], ir[ok])
-        self._feats = f.concat(new)
+        self._feats = self._feats.concat(FeatureSet(
+            ids, np.zeros(n, np.int64), new.left_raw[:n], new.right_raw[:n], new.left_ideal[:n],
+            new.right_ideal[:n]))
+
+    def _top_up(self, left: np.ndarray, right: np.ndarray, stats: TrackerStats) -> None:
+        """
+        Replenish again, in this thread, when an early replenishment left many slots empty.
+
+        An early replenishment (``replenish_after`` not ``all``) counts the features a later
+        check may still remove; when fewer than ``TOP_UP_FRACTION`` of the features it counted
+        on survived (a stereo failure over the whole image), the slots would stay empty for a
+        pair.
+        """
+        if self._planned_kept is None or stats.initialized:
+            return
+        planned, self._planned_kept = self._planned_kept, None
+        if stats.n_tracked >= TOP_UP_FRACTION * planned:
+            return
+        f = self._feats
+        job = self._replenish_job(left, self._calib, None, f.left_raw, f.right_raw,
+                                  f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f))
+        if job is None:
+            return
+        right_m, _ = self._matched(left, right, None, None, stats)
+        added = stats.n_added
+        self._add(replenish(left, right, right_m, job, CLOCK, self._float(left),
+                            self._float(right)), stats)
+        stats.n_added += added
+
+
+class _Finish:
+    """
+    The end of one ``track_async``: waits for the replenishment, applies it, gives the result.
+
+    Runs once, in the thread that asks first (``result``); later calls return the same result
+    or raise the same error.
+    """
+
+    def __init__(self, tracker: StereoTracker, left8: np.ndarray, right8: np.ndarray,
+                 stats: TrackerStats, corr: Correspondences, raw: Correspondences,
+                 new, t_start: float) -> None:
+        self._args = (tracker, left8, right8, stats, corr, raw, new, t_start)
+        self._value: TrackResult | None = None
+        self._error: Exception | None = None
+
+    def result(self) -> TrackResult:
+        if self._args is not None:
+            args, self._args = self._args, None
+            try:
+                self._value = self._finish(*args)
+            except Exception as exc:  # raised to every caller, as a Future does
+                self._error = exc
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+    @staticmethod
+    def _finish(tracker: StereoTracker, left8: np.ndarray, right8: np.ndarray,
+                stats: TrackerStats, corr: Correspondences, raw: Correspondences, new,
+                t_start: float) -> TrackResult:
+        if new is not None:
+            tracker._add(new.result(), stats)
+        tracker._top_up(left8, right8, stats)
+        tracker._photo.carry(((left8, tracker._prev[0]), (right8, tracker._prev[1])))
+        stats.n_features = len(tracker._feats)
+        stats.timings_ms['total'] = (CLOCK() - t_start) * 1e3
+        f = tracker._feats
+        return TrackResult(corr, raw, f.left_raw.astype(np.float64),
+                           f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
