@@ -83,14 +83,14 @@ class TrackerConfig:
     affine_iterations: int = _f(
         3, 'Gauss-Newton steps of the affine refinement.', 1, 50, dynamic=True)
     replenish_after: str = _f(
-        'all', 'When the replenishment (detection and stereo matching of new corners, not '
+        'temporal', 'When the replenishment (detection and stereo matching of new corners, not '
         'in the paper) starts. all: after every check, from the features that passed them. '
         'stereo: after the stereo checks (eq. 5, 6); temporal: after the forward-backward '
         'check (eq. 4). The earlier, the more of the tracking a worker (pipeline.threads >= 2) '
         'overlaps; new corners then keep away from, and count in their bucket, features a '
         'later check may still remove (as many corners as the later checks removed in the last '
         'pair are asked for on top, the surplus dropped). Results do not depend on the thread '
-        'count. With a worker, temporal is the fast setting.',
+        'count; all gives the results of the pipeline before it had a worker.',
         choices=('all', 'stereo', 'temporal'), dynamic=True)
     photometric_compensation: bool = _f(
         True, 'Before every KLT pass, map the second image to the brightness of the first with '
@@ -288,7 +288,7 @@ class PipelineConfig:
         'replenishment of features (detection and stereo matching of new corners) runs on '
         'the worker (see worker) while the motion is estimated, and OpenCV spreads KLT points '
         "over threads - 1 threads (OpenCV's thread count is per process). Results do not "
-        'depend on the number. 0: the cores but one, 1 to 4.', 0, 64)
+        'depend on the number. 0: the cores, 1 to 4.', 0, 64)
     worker: str = _f(
         'process', 'Where the replenishment runs with threads >= 2. process: a worker process '
         '(Linux; a thread elsewhere), which overlaps the motion estimate for real; thread: a '

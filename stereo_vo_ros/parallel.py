@@ -40,7 +40,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-#: ``pipeline.threads: 0`` uses the machine's cores but one, at most this many.
+#: ``pipeline.threads: 0`` uses the machine's cores, at most this many.
 MAX_AUTO_THREADS = 4
 #: Arrays of at least this many bytes travel to the worker process in shared memory.
 SHARED_MIN_BYTES = 1 << 16
@@ -54,13 +54,12 @@ def auto_threads(requested: int) -> int:
     """
     Return the thread count for ``pipeline.threads``.
 
-    0: the machine's cores but one (left to the camera driver, DDS and the rest of the robot),
-    1 to 4. On two cores that is one thread: there the worker process was measured to save
-    time in some runs and to cost time in others (docs/benchmarks.md).
+    0: the machine's cores, 1 to 4. The replenishment is one job per pair, so two threads (the
+    caller and one worker) take what it offers; more spread OpenCV's KLT points in the caller.
     """
     if requested > 0:
         return int(requested)
-    return max(1, min((os.cpu_count() or 1) - 1, MAX_AUTO_THREADS))
+    return max(1, min(os.cpu_count() or 1, MAX_AUTO_THREADS))
 
 
 class _Done:

@@ -36,8 +36,9 @@ from .road.vehicle_motion import lateral_constraint
 from .tracking.tracker import PendingTrack, StereoTracker
 
 LOG = logging.getLogger(__name__)
-#: What a worker process imports as it starts: the replenishment it runs.
-REPLENISH_MODULE = 'stereo_vo_ros.tracking.replenish'
+#: What a worker process imports as it starts: the replenishment it runs and the modules of
+#: what it is sent (the motion prior is this module's).
+WORKER_MODULES = ('stereo_vo_ros.tracking.replenish', __name__)
 
 #: A stamp this far (s) before the previous one means the input restarted (e.g. a looping bag).
 RESTART_JUMP_S = 1.0
@@ -160,7 +161,7 @@ class StereoOdometry:
     def _workers(config: Config) -> Workers:
         """Return the workers of ``pipeline.threads`` and ``pipeline.worker``."""
         return Workers(config.pipeline.threads, kind=config.pipeline.worker,
-                       preload=(REPLENISH_MODULE,))
+                       preload=WORKER_MODULES)
 
     def close(self) -> None:
         """Stop the worker; the pipeline then runs in the caller's thread only."""

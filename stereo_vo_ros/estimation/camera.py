@@ -16,8 +16,10 @@ from the left camera frame into the right one: ``X_right = R_right_left @ X_left
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+import pickle
 from typing import Any, Mapping
+import weakref
 
 import cv2
 import numpy as np
@@ -300,6 +302,10 @@ class StereoCalibration:
                                    cam.D)
         return out.reshape(-1, 2).astype(np.float64)
 
+    def __reduce__(self) -> tuple:
+        """Pickle by value; equal calibrations unpickle as one object (``_restore``)."""
+        return (_restore_calibration, (tuple(getattr(self, f.name) for f in fields(self)),))
+
     def same_as(self, other: 'StereoCalibration | None') -> bool:
         """Return True if ``other`` describes the same geometry (used to detect changes)."""
         if other is None or other.kind != self.kind or other.size != self.size:
@@ -309,3 +315,20 @@ class StereoCalibration:
             (self.left.K, other.left.K), (self.right.K, other.right.K),
             (self.left.D, other.left.D) if self.left.D.shape == other.left.D.shape else (0, 1),
             (self.left.R, other.left.R), (self.right.R, other.right.R)))
+
+
+#: Calibrations unpickled in this process, by their pickled values: an equal one comes back as
+#: the same object, so the caches keyed by the calibration object (the transfer model's pair
+#: geometry) hold across the jobs a worker process receives.
+_UNPICKLED: 'weakref.WeakValueDictionary[bytes, StereoCalibration]' = \
+    weakref.WeakValueDictionary()
+
+
+def _restore_calibration(values: tuple) -> StereoCalibration:
+    """Return the calibration of ``values`` (its fields in order), the same object if seen."""
+    key = pickle.dumps(values, protocol=pickle.HIGHEST_PROTOCOL)
+    calib = _UNPICKLED.get(key)
+    if calib is None:
+        calib = StereoCalibration(*values)
+        _UNPICKLED[key] = calib
+    return calib
