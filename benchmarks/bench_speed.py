@@ -17,7 +17,7 @@ extra ms and extra CPU over the first configuration, paired within rounds (media
 
 Usage::
 
-    python benchmarks/bench_speed.py [--data ../shared/data] [--rounds 3]
+    python benchmarks/bench_speed.py [--data ../shared/data] [--rounds 3] [--render 1280x720]
         [--variant pipeline.threads=2] [--variant "road.enabled=true road.levels=1"]
 
 The first configuration is one thread with the replenishment after every check, the defaults
@@ -25,7 +25,8 @@ on two cores (``--base`` items replace that); the variants are whole configurati
 (overrides of the defaults). By default: a worker process with the replenishment after the
 temporal checks, the road vehicle profile, and a worker process with the replenishment after
 every check (results identical to the first). Without the KITTI clips a rendered urban scene at
-1241x376 is timed instead, and the script says so.
+1241x376 is timed instead, and the script says so; ``--render WxH`` adds a rendered urban scene
+of that size (60 pairs).
 """
 
 from __future__ import annotations
@@ -108,6 +109,9 @@ def main() -> int:
     parser.add_argument('--variant', action='append', default=[], metavar='"K=V [K=V ...]"',
                         help='a configuration to compare, as space-separated overrides of the '
                         f'defaults (repeatable; default: {VARIANTS})')
+    parser.add_argument('--render', action='append', default=[], metavar='WxH',
+                        help='also time a rendered urban scene of this size (60 pairs), e.g. '
+                        '1280x720 (repeatable)')
     args = parser.parse_args()
     cv2.setNumThreads(1)
     variants = args.variant or VARIANTS
@@ -123,6 +127,13 @@ def main() -> int:
     if not clips:
         print('no KITTI clip: timing a rendered urban scene (1241x376, 60 frames) instead')
         clips.append(render(SequenceSpec.preset('urban', n_frames=60), 'urban'))
+    for size in args.render:
+        try:
+            width, height = (int(v) for v in size.lower().split('x'))
+        except ValueError:
+            raise SystemExit(f'--render wants WxH, got {size!r}') from None
+        clips.append(render(SequenceSpec.preset('urban', n_frames=60, width=width,
+                                                height=height), f'urban{width}x{height}'))
     print(f'{len(clips)} clip(s): ' + ', '.join(
         f'{c.name} ({len(c.frames)} pairs, {c.size[0]}x{c.size[1]})' for c in clips))
     print('configurations: ' + '; '.join(f'[{i}] {n}' for i, n in enumerate(names)))

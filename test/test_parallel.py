@@ -149,3 +149,24 @@ def test_results_with_a_worker_do_not_depend_on_its_kind_or_count(urban):
         ends[key] = runs[key][-1].T_world_cam[:3, 3]
         assert np.linalg.norm(ends[key] - end[:3, 3]) < 0.01 * path, key
     assert np.linalg.norm(ends[1, 'process'] - ends[2, 'process']) < 0.005 * path
+
+
+@needs_process
+def test_pipeline_goes_on_identically_when_its_worker_process_dies(urban, caplog):
+    """Killing the worker mid-run: a warning, the rest inline, the same poses as one thread."""
+    frames, _ = urban
+    _, reference = _run(frames[:12], **{'pipeline.threads': 1})
+    odometry = StereoOdometry(Config().replace(**{'pipeline.threads': 2}))
+    try:
+        results = []
+        for i, frame in enumerate(frames[:12]):
+            if i == 6:
+                odometry.workers._process._proc.kill()
+            with caplog.at_level(logging.WARNING, logger='stereo_vo_ros.parallel'):
+                results.append(odometry.process(frame))
+        assert odometry.workers._process is None or not odometry.workers._process.alive
+    finally:
+        odometry.close()
+    assert 'worker process lost' in caplog.text
+    for a, b in zip(reference, results):
+        assert np.array_equal(a.T_world_cam, b.T_world_cam)
