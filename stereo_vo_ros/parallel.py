@@ -30,6 +30,7 @@ from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
 import os
 import pickle
+import signal
 import socket
 import subprocess
 import sys
@@ -349,6 +350,9 @@ def serve(conn: Connection, preload: tuple[str, ...] = ()) -> None:
 
     ``preload``: modules to import first.
     """
+    # Ctrl-C in a terminal reaches the whole process group: the caller decides when this
+    # process ends (an empty message, or the end of the socket when the caller is gone).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
     for name in preload:
         importlib.import_module(name)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import threading
 
 import numpy as np
@@ -77,6 +78,9 @@ def test_process_worker_runs_jobs_in_another_process():
         with pytest.raises(ValueError, match='boom'):
             workers.submit(int, 'boom').result()
         assert workers.submit(np.negative, small).result().tolist() == [-1.0, -2.0]
+        # Ctrl-C (SIGINT to the process group) leaves the worker to its owner.
+        os.kill(workers._process._proc.pid, signal.SIGINT)
+        assert workers.submit(os.getpid).result() != os.getpid()
         # What does not pickle runs inline, in this process.
         assert workers.submit(lambda: os.getpid()).result() == os.getpid()
         assert workers.worker_cpu_seconds() > 0.0
