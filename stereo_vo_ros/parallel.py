@@ -5,7 +5,7 @@ The tracker's replenishment (detection of new corners, their stereo matches and 
 ``tracking.replenish``) needs nothing of the motion estimate, so it runs while the caller
 estimates the motion. Where it runs is ``pipeline.worker``:
 
-* ``process`` (default): a worker process of its own (``python -m stereo_vo_ros.parallel``),
+* ``process`` (default): a worker process of its own (``serve`` in a new interpreter),
   fed through a socket with the images in shared memory. Only a process overlaps for real: the
   estimate and the replenishment are NumPy on small arrays and Python between OpenCV calls,
   which hold the GIL, so in one process they take turns.
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 import importlib
+import json
 import logging
 import mmap
 from multiprocessing.connection import Connection
@@ -104,12 +105,14 @@ class ProcessWorker:
     """
     One worker process that runs submitted functions, one at a time, in submission order.
 
-    ``preload`` names modules the process imports as it starts (the ones its jobs need), so
-    that the first job does not wait for them. ``submit(fn, *args)`` sends ``fn`` (a
-    module-level function, pickled by name) and its arguments; NumPy arrays of
+    ``preload`` names what the process does as it starts, so that the first job does not wait:
+    modules to import (``package.module``) and functions to call (``package.module:function``).
+    The process sees the caller's ``sys.path``. ``submit(fn, *args)`` sends ``fn`` (a
+    module-level function, pickled by name) and its arguments; plain NumPy arrays of
     ``SHARED_MIN_BYTES`` or more are copied into a shared-memory block instead of pickled. The
-    next ``submit`` waits for the last result. Whatever cannot go (arguments that do not
-    pickle) or does not come back (the process died) runs inline.
+    next ``submit`` waits for the last job. Whatever cannot go (arguments that do not pickle
+    here or unpickle there, no room for the shared block) or does not come back (a result that
+    does not pickle, the process died or was interrupted) runs inline.
     """
 
     def __init__(self, preload: tuple[str, ...] = ()) -> None:
@@ -128,9 +131,12 @@ class ProcessWorker:
 
     def _start(self) -> None:
         parent, child = socket.socketpair()
+        # The caller's import path, in its order (not the working directory first, as
+        # ``python -m`` would put it): the worker runs the caller's code.
+        paths = [p or os.getcwd() for p in sys.path]
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, '-m', 'stereo_vo_ros.parallel', str(child.fileno()),
+                [sys.executable, '-c', _CHILD_MAIN, json.dumps(paths), str(child.fileno()),
                  *self._preload],
                 pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL)
         except OSError as exc:
@@ -150,11 +156,21 @@ class ProcessWorker:
     def submit(self, fn: Callable[..., Any], *args: Any) -> _ProcessJob | _Done:
         """Start ``fn(*args)`` in the process; ``.result()`` returns or raises its outcome."""
         if self._pending is not None:
-            self._pending.result()
+            try:  # a job nobody collected: its outcome is its owner's, not this job's
+                self._pending.result()
+            except Exception:  # noqa: BLE001
+                pass
         if not self.alive:
             return _Done(fn, args)
         try:
-            message = pickle.dumps((fn, self._pack(args)), protocol=pickle.HIGHEST_PROTOCOL)
+            packed = self._pack(args)
+        except (OSError, ValueError) as exc:
+            logger.warning('no shared memory for the worker process (%s); working in one '
+                           'thread from now on', exc)
+            self.close()
+            return _Done(fn, args)
+        try:
+            message = pickle.dumps((fn, packed), protocol=pickle.HIGHEST_PROTOCOL)
         except (pickle.PicklingError, TypeError, AttributeError) as exc:
             logger.debug('job does not pickle (%s); run inline', exc)
             return _Done(fn, args)
@@ -170,7 +186,8 @@ class ProcessWorker:
         """Copy the large arrays of ``args`` into the shared block; return the arguments sent."""
         large = {}
         for arg in args:
-            if isinstance(arg, np.ndarray) and arg.nbytes >= SHARED_MIN_BYTES:
+            if type(arg) is np.ndarray and arg.nbytes >= SHARED_MIN_BYTES \
+                    and not arg.dtype.hasobject:
                 large.setdefault(id(arg), arg)
         offsets, size = {}, 0
         for key, arr in large.items():
@@ -179,6 +196,13 @@ class ProcessWorker:
         if size and (self._shm is None or self._shm.size < size):
             self._release_block()
             self._shm = SharedMemory(create=True, size=size)
+            # Reserve the pages now: a full /dev/shm then fails here (OSError), not with a
+            # SIGBUS on the first write.
+            fd = os.open(os.path.join(SHM_DIR, self._shm.name.lstrip('/')), os.O_RDWR)
+            try:
+                os.posix_fallocate(fd, 0, size)
+            finally:
+                os.close(fd)
         sent = []
         for arg in args:
             if id(arg) in offsets and large[id(arg)] is arg:
@@ -186,22 +210,32 @@ class ProcessWorker:
                 view = np.ndarray(arg.shape, arg.dtype, buffer=self._shm.buf, offset=offset)
                 view[...] = arg
                 del view
-                sent.append(_Shared(offset, arg.shape, arg.dtype.str))
+                sent.append(_Shared(offset, arg.shape, arg.dtype))
             else:
                 sent.append(arg)
         return (self._shm.name if large else None, tuple(sent))
 
     def _receive(self, fn: Callable[..., Any], args: tuple) -> _Done:
-        self._pending = None
         if self._conn is None:  # closed meanwhile
+            self._pending = None
             return _Done(fn, args)
         try:
             status, value = self._conn.recv()
         except (EOFError, OSError) as exc:
             self._lost(exc)
             return _Done(fn, args)
+        except BaseException:
+            # Interrupted while waiting: the reply may still come, so the socket can no
+            # longer pair replies with jobs.
+            self._lost('interrupted while waiting for a result')
+            raise
+        finally:
+            self._pending = None
         if status == 'ok':
             return _Done(lambda: value, ())
+        if status == 'inline':
+            logger.debug('job could not run in the worker process (%s); run inline', value)
+            return _Done(fn, args)
         return _Done(_raise, (value,))
 
     def cpu_seconds(self) -> float:
@@ -215,8 +249,8 @@ class ProcessWorker:
         except (OSError, ValueError, IndexError):
             return 0.0
 
-    def _lost(self, exc: BaseException) -> None:
-        logger.warning('worker process lost (%s); working in one thread from now on', exc)
+    def _lost(self, why: object) -> None:
+        logger.warning('worker process lost (%s); working in one thread from now on', why)
         self.close()
 
     def _release_block(self) -> None:
@@ -348,14 +382,17 @@ def serve(conn: Connection, preload: tuple[str, ...] = ()) -> None:
     """
     Run jobs from ``conn`` until it closes or sends an empty message (the worker's loop).
 
-    ``preload``: modules to import first.
+    ``preload``: modules to import first, or ``module:function`` to call.
     """
     # Ctrl-C in a terminal reaches the whole process group: the caller decides when this
     # process ends (an empty message, or the end of the socket when the caller is gone).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
-    for name in preload:
-        importlib.import_module(name)
+    for item in preload:
+        name, _, function = item.partition(':')
+        module = importlib.import_module(name)
+        if function:
+            getattr(module, function)()
     block: tuple[str, mmap.mmap] | None = None
     while True:
         try:
@@ -364,31 +401,41 @@ def serve(conn: Connection, preload: tuple[str, ...] = ()) -> None:
             break
         if not message:
             break
-        args: list = []
         try:
             fn, (name, packed) = pickle.loads(message)
+        except Exception as exc:  # noqa: BLE001 - e.g. a class only the caller's __main__ has
+            reply = ('inline', f'{type(exc).__name__}: {exc}')
+        else:
             if name is not None and (block is None or block[0] != name):
                 if block is not None:
                     block[1].close()
                 block = (name, _attach(name)[0])
-            for arg in packed:
-                if isinstance(arg, _Shared):
-                    arg = np.ndarray(arg.shape, np.dtype(arg.dtype), buffer=block[1],
-                                     offset=arg.offset)
-                args.append(arg)
-            reply = ('ok', fn(*args))
-        except Exception as exc:  # noqa: BLE001 - raised in the caller by result()
-            reply = ('error', exc)
-        args.clear()
+            args = [np.ndarray(arg.shape, arg.dtype, buffer=block[1], offset=arg.offset)
+                    if isinstance(arg, _Shared) else arg for arg in packed]
+            del packed
+            try:
+                reply = ('ok', fn(*args))
+            except Exception as exc:  # noqa: BLE001 - raised in the caller by result()
+                reply = ('error', exc)
+            del args
         try:
-            conn.send(reply)
-        except Exception as exc:  # noqa: BLE001 - an error that does not pickle
-            conn.send(('error', RuntimeError(f'{type(reply[1]).__name__}: {exc}')))
+            try:
+                conn.send(reply)
+            except (pickle.PicklingError, TypeError, AttributeError) as exc:
+                # A result or error that does not pickle: the caller runs the job itself.
+                conn.send(('inline', f'{type(exc).__name__}: {exc}'))
+        except OSError:  # the caller is gone or closed the socket
+            break
         reply = None  # no view of the shared block outlives the job
+    if block is not None:
+        block[1].close()
     conn.close()
 
 
-if __name__ == '__main__':
-    # The loop of the importable module, so that its classes are the ones the caller pickles.
-    from stereo_vo_ros.parallel import serve as _serve
-    _serve(Connection(int(sys.argv[1])), tuple(sys.argv[2:]))
+#: The worker process's entry: the caller's import path, then ``serve`` on the inherited socket.
+_CHILD_MAIN = (
+    'import json, sys\n'
+    'sys.path[:] = json.loads(sys.argv[1])\n'
+    'from multiprocessing.connection import Connection\n'
+    'from stereo_vo_ros.parallel import serve\n'
+    'serve(Connection(int(sys.argv[2])), tuple(sys.argv[3:]))\n')

@@ -36,9 +36,10 @@ from .road.vehicle_motion import lateral_constraint
 from .tracking.tracker import PendingTrack, StereoTracker
 
 LOG = logging.getLogger(__name__)
-#: What a worker process imports as it starts: the replenishment it runs and the modules of
-#: what it is sent (the motion prior is this module's).
-WORKER_MODULES = ('stereo_vo_ros.tracking.replenish', __name__)
+#: What a worker process does as it starts: import the replenishment it runs and the modules of
+#: what it is sent (the motion prior is this module's), and share equal calibrations.
+WORKER_MODULES = ('stereo_vo_ros.tracking.replenish', __name__,
+                  'stereo_vo_ros.estimation.camera:share_unpickled_calibrations')
 
 #: A stamp this far (s) before the previous one means the input restarted (e.g. a looping bag).
 RESTART_JUMP_S = 1.0

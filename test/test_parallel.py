@@ -10,10 +10,16 @@ other and closely with one thread.
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
+import pickle
+import resource
 import signal
+import sys
 import threading
+import time
+import types
 
 import numpy as np
 import pytest
@@ -127,32 +133,36 @@ def _run(frames, **items):
 
 def test_results_with_a_worker_do_not_depend_on_its_kind_or_count(urban):
     """
-    Two threads (process or thread worker) and three give bit-identical poses and counts.
+    One, two (process or thread worker) and three threads give bit-identical poses and counts.
 
-    One thread differs only in when the replenishment starts (after every check instead of
-    after the temporal ones): both end close to the truth and to each other.
+    The replenishment after every check instead of after the temporal checks (as the pipeline
+    ran before it had a worker) differs a little: both end close to the truth and each other.
     """
     frames, truth = urban
     runs = {}
-    for threads, worker in ((1, 'process'), (2, 'process'), (2, 'thread'), (3, 'process')):
-        kind, runs[threads, worker] = _run(frames, **{'pipeline.threads': threads,
-                                                      'pipeline.worker': worker})
+    for threads, worker, start in ((1, 'process', 'temporal'), (2, 'process', 'temporal'),
+                                   (2, 'thread', 'temporal'), (3, 'process', 'temporal'),
+                                   (1, 'process', 'all'), (2, 'process', 'all')):
+        kind, runs[threads, worker, start] = _run(frames, **{
+            'pipeline.threads': threads, 'pipeline.worker': worker,
+            'tracker.replenish_after': start})
         assert kind == ('inline' if threads == 1 else
                         worker if ProcessWorker.available() else 'thread')
-    reference = runs[2, 'process']
-    assert sum(r.status.name == 'OK' for r in reference) >= len(frames) - 2
-    for key in ((2, 'thread'), (3, 'process')):
-        for a, b in zip(reference, runs[key]):
-            assert np.array_equal(a.T_world_cam, b.T_world_cam), key
-            assert a.n_tracked == b.n_tracked and a.n_inliers == b.n_inliers
+    for start, keys in (('temporal', ((1, 'process'), (2, 'thread'), (3, 'process'))),
+                        ('all', ((1, 'process'),))):
+        reference = runs[2, 'process', start]
+        assert sum(r.status.name == 'OK' for r in reference) >= len(frames) - 2
+        for key in keys:
+            for a, b in zip(reference, runs[key + (start,)]):
+                assert np.array_equal(a.T_world_cam, b.T_world_cam), (key, start)
+                assert a.n_tracked == b.n_tracked and a.n_inliers == b.n_inliers
     path = np.sum(np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1))
-    ends = {}
-    for key in ((1, 'process'), (2, 'process')):
-        # Both start at the identity; the truth's first pose is the origin of the comparison.
-        end = np.linalg.inv(truth[0]) @ truth[-1]
-        ends[key] = runs[key][-1].T_world_cam[:3, 3]
-        assert np.linalg.norm(ends[key] - end[:3, 3]) < 0.01 * path, key
-    assert np.linalg.norm(ends[1, 'process'] - ends[2, 'process']) < 0.005 * path
+    end = (np.linalg.inv(truth[0]) @ truth[-1])[:3, 3]  # both start at the identity
+    ends = {start: runs[2, 'process', start][-1].T_world_cam[:3, 3]
+            for start in ('temporal', 'all')}
+    for start, position in ends.items():
+        assert np.linalg.norm(position - end) < 0.01 * path, start
+    assert np.linalg.norm(ends['temporal'] - ends['all']) < 0.005 * path
 
 
 @needs_process
@@ -174,3 +184,84 @@ def test_pipeline_goes_on_identically_when_its_worker_process_dies(urban, caplog
     assert 'worker process lost' in caplog.text
     for a, b in zip(reference, results):
         assert np.array_equal(a.T_world_cam, b.T_world_cam)
+
+
+@needs_process
+def test_process_worker_edge_cases(tmp_path, caplog):
+    """The worker process's contract where jobs are unusual (each case once failed a review)."""
+    # The worker sees the caller's import path: a module only the caller's sys.path reaches.
+    (tmp_path / 'svo_path_probe.py').write_text(
+        'import os\n\n\ndef pid():\n    return os.getpid()\n')
+    sys.path.append(str(tmp_path))
+    try:
+        import svo_path_probe
+        workers = Workers(2, set_opencv=False)
+    finally:
+        sys.path.remove(str(tmp_path))
+    try:
+        assert workers.submit(svo_path_probe.pid).result() != os.getpid()
+        # A function that pickles here but does not unpickle there runs inline.
+        here_only = types.ModuleType('svo_only_in_this_process')
+        exec('import os\n\ndef pid():\n    return os.getpid()\n', here_only.__dict__)
+        sys.modules[here_only.__name__] = here_only
+        try:
+            assert workers.submit(here_only.pid).result() == os.getpid()
+        finally:
+            del sys.modules[here_only.__name__]
+        # A job nobody collected does not fail the next one.
+        workers.submit(int, 'boom')
+        assert workers.submit(np.add, 1, 2).result() == 3
+        # Large arrays keep their dtype; subclasses (a masked array) are pickled whole.
+        record = np.zeros(10000, dtype=[('x', '<f4'), ('n', '<i4')])
+        record['n'] = np.arange(10000)
+        back = workers.submit(np.copy, record).result()
+        assert back.dtype == record.dtype and np.array_equal(back, record)
+        masked = np.ma.masked_less(np.arange(20000.0), 10000.0)
+        assert workers.submit(np.ma.sum, masked).result() == masked.sum()
+        # Interrupted while waiting (Ctrl-C in the caller): the socket can no longer pair
+        # replies with jobs, so the worker is dropped and later jobs run inline, correctly.
+        job = workers.submit(time.sleep, 1.0)
+
+        def interrupt(signum, frame):
+            raise KeyboardInterrupt
+        previous = signal.signal(signal.SIGALRM, interrupt)
+        try:
+            signal.setitimer(signal.ITIMER_REAL, 0.2)
+            with caplog.at_level(logging.WARNING, logger='stereo_vo_ros.parallel'):
+                with pytest.raises(KeyboardInterrupt):
+                    job.result()
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, previous)
+        assert 'interrupted' in caplog.text
+        assert workers.submit(np.add, 2, 3).result() == 5
+        assert workers.submit(os.getpid).result() == os.getpid()
+    finally:
+        workers.close()
+
+
+@needs_process
+def test_no_room_for_shared_memory_runs_inline(caplog):
+    """A shared block that cannot be made (here: a file size limit) leaves the work inline."""
+    workers = Workers(2, set_opencv=False)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    try:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 16, hard))
+        with caplog.at_level(logging.WARNING, logger='stereo_vo_ros.parallel'):
+            image = np.ones((376, 1241), np.uint8)
+            assert workers.submit(np.sum, image).result() == image.size
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        workers.close()
+    assert 'no shared memory' in caplog.text
+
+
+def test_calibration_copies_stay_copies():
+    """Copies of a calibration are new objects outside a worker process."""
+    calib = SequenceSpec.preset('urban', n_frames=2).calibration()
+    first, second = copy.deepcopy(calib), copy.deepcopy(calib)
+    assert first is not second and first is not calib and first.same_as(calib)
+    assert copy.copy(calib) is not first
+    first.K_left[0, 0] += 1.0
+    assert second.K_left[0, 0] == calib.K_left[0, 0]
+    assert pickle.loads(pickle.dumps(calib)).same_as(calib)

@@ -303,7 +303,7 @@ class StereoCalibration:
         return out.reshape(-1, 2).astype(np.float64)
 
     def __reduce__(self) -> tuple:
-        """Pickle by value; equal calibrations unpickle as one object (``_restore``)."""
+        """Pickle by value (``_restore_calibration``: one object per value in a worker)."""
         return (_restore_calibration, (tuple(getattr(self, f.name) for f in fields(self)),))
 
     def same_as(self, other: 'StereoCalibration | None') -> bool:
@@ -317,15 +317,25 @@ class StereoCalibration:
             (self.left.R, other.left.R), (self.right.R, other.right.R)))
 
 
-#: Calibrations unpickled in this process, by their pickled values: an equal one comes back as
-#: the same object, so the caches keyed by the calibration object (the transfer model's pair
-#: geometry) hold across the jobs a worker process receives.
-_UNPICKLED: 'weakref.WeakValueDictionary[bytes, StereoCalibration]' = \
-    weakref.WeakValueDictionary()
+#: Calibrations unpickled in this process, by their pickled values, once
+#: ``share_unpickled_calibrations`` was called (a worker process): an equal one then comes back
+#: as the same object, so the caches keyed by the calibration object (the transfer model's pair
+#: geometry) hold across the jobs the process receives. None: every unpickling (and copy) makes
+#: a new object.
+_UNPICKLED: 'weakref.WeakValueDictionary[bytes, StereoCalibration] | None' = None
+
+
+def share_unpickled_calibrations() -> None:
+    """Make equal calibrations unpickle as one object in this process (worker processes)."""
+    global _UNPICKLED
+    if _UNPICKLED is None:
+        _UNPICKLED = weakref.WeakValueDictionary()
 
 
 def _restore_calibration(values: tuple) -> StereoCalibration:
-    """Return the calibration of ``values`` (its fields in order), the same object if seen."""
+    """Return the calibration of ``values`` (its fields in order); see ``_UNPICKLED``."""
+    if _UNPICKLED is None:
+        return StereoCalibration(*values)
     key = pickle.dumps(values, protocol=pickle.HIGHEST_PROTOCOL)
     calib = _UNPICKLED.get(key)
     if calib is None:

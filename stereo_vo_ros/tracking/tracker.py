@@ -234,6 +234,7 @@ class StereoTracker:
                             left8.shape[1], left8.shape[0])
             self._feats = FeatureSet.empty()
             self._barren = None
+            self._later_losses = (0, 0)
             self._calib = calib
             stats.initialized = True
             corr, raw = empty_correspondences(), empty_correspondences()
@@ -555,8 +556,12 @@ class StereoTracker:
 
     def _replenish_job(self, left: np.ndarray, calib: StereoCalibration, prior: Prior | None,
                        left_raw: np.ndarray, right_raw: np.ndarray, disparity: np.ndarray,
-                       n_kept: int) -> ReplenishJob | None:
-        """Plan a replenishment (None: no corner is needed); see ``_start_replenishment``."""
+                       n_kept: int, first: bool = True) -> ReplenishJob | None:
+        """
+        Plan a replenishment (None: no corner is needed); see ``_start_replenishment``.
+
+        ``first``: the pair's first replenishment, which counts down the barren buckets.
+        """
         cfg = self.cfg
         need = cfg.max_features - n_kept
         if need <= 0:
@@ -568,7 +573,8 @@ class StereoTracker:
                 self._barren = np.zeros((bcfg.rows, bcfg.cols), np.int64)
             size = (left.shape[1], left.shape[0])
             chosen = plan_detection(left_raw, need, size, bcfg, self._barren > 0)
-            self._barren = np.maximum(self._barren - 1, 0)
+            if first:
+                self._barren = np.maximum(self._barren - 1, 0)
         return ReplenishJob(cfg, bcfg, calib, np.array(left_raw, np.float32),
                             np.array(right_raw, np.float32), need, chosen,
                             self._expected_flow(prior, calib, disparity),
@@ -610,7 +616,7 @@ class StereoTracker:
             return
         f = self._feats
         job = self._replenish_job(left, self._calib, None, f.left_raw, f.right_raw,
-                                  f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f))
+                                  f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f), first=False)
         if job is None:
             return
         right_m, _ = self._matched(left, right, None, None, stats)
@@ -642,6 +648,9 @@ class _Finish:
                 self._value = self._finish(*args)
             except Exception as exc:  # raised to every caller, as a Future does
                 self._error = exc
+            except BaseException:  # interrupted (Ctrl-C): the next call finishes
+                self._args = args
+                raise
         if self._error is not None:
             raise self._error
         return self._value
