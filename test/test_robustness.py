@@ -404,6 +404,9 @@ def test_missing_camera_info_waits_says_so_and_uses_the_newest_pair(make_rig):
     assert rig.h.wait_for(lambda: rig.diag().message == f'waiting for camera_info on '
                           f'/{rig.name}/right/camera_info', 5.0), rig.status()
     assert rig.odom.count == 0
+    # Pair 3 is waiting once the three before it are dropped (replaced in the waiting slot or
+    # in the mailbox); the right camera_info must not arrive before it does.
+    rig.wait_count('dropped_pairs', 3)
     rig.camera_info(sides='r')
     # Only the newest waiting pair is processed once both camera_info exist; the ones it
     # replaced are counted as dropped.
