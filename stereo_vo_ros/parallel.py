@@ -198,7 +198,7 @@ class ProcessWorker:
             self._shm = SharedMemory(create=True, size=size)
             # Reserve the pages now: a full /dev/shm then fails here (OSError), not with a
             # SIGBUS on the first write.
-            fd = os.open(os.path.join(SHM_DIR, self._shm.name.lstrip('/')), os.O_RDWR)
+            fd = os.open(_shm_path(self._shm.name), os.O_RDWR)
             try:
                 os.posix_fallocate(fd, 0, size)
             finally:
@@ -216,8 +216,8 @@ class ProcessWorker:
         return (self._shm.name if large else None, tuple(sent))
 
     def _receive(self, fn: Callable[..., Any], args: tuple) -> _Done:
+        self._pending = None
         if self._conn is None:  # closed meanwhile
-            self._pending = None
             return _Done(fn, args)
         try:
             status, value = self._conn.recv()
@@ -229,8 +229,6 @@ class ProcessWorker:
             # longer pair replies with jobs.
             self._lost('interrupted while waiting for a result')
             raise
-        finally:
-            self._pending = None
         if status == 'ok':
             return _Done(lambda: value, ())
         if status == 'inline':
@@ -368,12 +366,16 @@ def inline() -> Workers:
     return Workers(1, set_opencv=False)
 
 
-def _attach(name: str) -> tuple[mmap.mmap, int]:
-    """Map the shared block ``name`` (created by the caller) into this process."""
-    fd = os.open(os.path.join(SHM_DIR, name.lstrip('/')), os.O_RDWR)
+def _shm_path(name: str) -> str:
+    """Return the file of the POSIX shared-memory block ``name``."""
+    return os.path.join(SHM_DIR, name.lstrip('/'))
+
+
+def _attach(name: str) -> mmap.mmap:
+    """Map the whole shared block ``name`` (created by the caller) into this process."""
+    fd = os.open(_shm_path(name), os.O_RDWR)
     try:
-        size = os.fstat(fd).st_size
-        return mmap.mmap(fd, size), size
+        return mmap.mmap(fd, 0)
     finally:
         os.close(fd)
 
@@ -409,7 +411,7 @@ def serve(conn: Connection, preload: tuple[str, ...] = ()) -> None:
             if name is not None and (block is None or block[0] != name):
                 if block is not None:
                     block[1].close()
-                block = (name, _attach(name)[0])
+                block = (name, _attach(name))
             args = [np.ndarray(arg.shape, arg.dtype, buffer=block[1], offset=arg.offset)
                     if isinstance(arg, _Shared) else arg for arg in packed]
             del packed

@@ -243,40 +243,47 @@ class StereoTracker:
             corr, raw, klt_right, new = self._track_existing(left8, right8, calib, prior, stats)
         self._prev = (left8, right8)
         if stats.initialized or self.cfg.replenish_after not in ('stereo', 'temporal'):
-            # Replenishment after every check: from the features that survived them.
-            f = self._feats
-            new = self._start_replenishment(
-                left8, right8, calib, stats, prior if stats.used_prior else None,
-                f.left_raw, f.right_raw, f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f),
-                None, None)
+            new = self._replenish_survivors(left8, right8, calib, stats, prior)
         self._pending = _Finish(self, left8, right8, stats, corr, raw, new, t_start)
         return PendingTrack(corr, raw, stats, klt_right, self._pending)
 
     def _start_replenishment(self, left: np.ndarray, right: np.ndarray,
                              calib: StereoCalibration, stats: TrackerStats,
                              prior: Prior | None, left_raw: np.ndarray, right_raw: np.ndarray,
-                             disparity: np.ndarray, n_kept: int, pts_left: np.ndarray | None,
-                             pts_right: np.ndarray | None):
+                             disparity: np.ndarray, n_kept: int,
+                             pts_left: np.ndarray | None = None,
+                             pts_right: np.ndarray | None = None, first: bool = True):
         """
         Plan the replenishment and hand it to the workers; return its pending result or None.
 
+        ``prior``: the pair's motion prior (used only if the tracking used it);
         ``left_raw``, ``right_raw`` (N, 2): the features corners keep away from and take their
         stereo start from; ``disparity`` (N,) their ideal disparities (pixels); ``n_kept`` the
         features expected to stay (corners wanted: ``max_features - n_kept``); ``pts_left``,
         ``pts_right``: the points the stereo pass maps the right image's brightness with
-        (None: the whole images).
+        (None: the whole images); ``first``: see ``_replenish_job``.
         """
         t = CLOCK()
-        job = self._replenish_job(left, calib, prior, left_raw, right_raw, disparity, n_kept)
+        job = self._replenish_job(left, calib, prior if stats.used_prior else None, left_raw,
+                                  right_raw, disparity, n_kept, first)
         stats.timings_ms['detection'] += (CLOCK() - t) * 1e3
         if job is None:
             return None
         right_m, _ = self._matched(left, right, pts_left, pts_right, stats)
-        if self.workers.threads > 1:
+        if self.workers.kind == 'process':  # converting there costs less than copying
             return self.workers.submit(replenish, left, right, right_m, job)
-        # Inline: the float images the refinement converted are reused.
+        # In this process: the float images the refinement converted are reused.
         return self.workers.submit(replenish, left, right, right_m, job, CLOCK,
                                    self._float(left), self._float(right))
+
+    def _replenish_survivors(self, left: np.ndarray, right: np.ndarray,
+                             calib: StereoCalibration, stats: TrackerStats,
+                             prior: Prior | None, first: bool = True):
+        """Start a replenishment from the features that passed every check (``_feats``)."""
+        f = self._feats
+        return self._start_replenishment(
+            left, right, calib, stats, prior, f.left_raw, f.right_raw,
+            f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f), first=first)
 
     def join(self) -> TrackResult | None:
         """
@@ -421,9 +428,9 @@ class StereoTracker:
             measured = (f.right_raw[alive] - f.left_raw[alive]).astype(np.float64)
             self._planned_kept = n_temporal - self._later_losses[0]
             new = self._start_replenishment(
-                left, right, calib, stats, prior if pred is not None else None, cur_l[alive],
-                cur_l[alive] + measured, f.left_ideal[alive, 0] - f.right_ideal[alive, 0],
-                n_temporal - self._later_losses[0], cur_l[alive], cur_l[alive] + offset)
+                left, right, calib, stats, prior, cur_l[alive], cur_l[alive] + measured,
+                f.left_ideal[alive, 0] - f.right_ideal[alive, 0], self._planned_kept,
+                cur_l[alive], cur_l[alive] + offset)
             t += clock() - spent
         npts['stereo_fwd'] = len(alive)
         right_m, spent = self._matched(left, right, cur_l[alive], cur_l[alive] + offset, stats)
@@ -467,9 +474,8 @@ class StereoTracker:
             # From here, with the stereo matches as the KLT pass found them: the worker overlaps
             # the refinement, the bi-circular check and the motion estimate.
             new = self._start_replenishment(
-                left, right, calib, stats, prior if pred is not None else None, cur_l[alive],
-                cur_r, ideal_l[:, 0] - ideal_r[:, 0], n_stereo - self._later_losses[1], None,
-                None)
+                left, right, calib, stats, prior, cur_l[alive], cur_r,
+                ideal_l[:, 0] - ideal_r[:, 0], self._planned_kept)
         klt_r = cur_r.astype(np.float64)
         if cfg.affine_refinement and len(alive):
             cur_r = self._refine(left, right, cur_l[alive], cur_r, stats, stereo=True)
@@ -614,16 +620,11 @@ class StereoTracker:
         planned, self._planned_kept = self._planned_kept, None
         if stats.n_tracked >= TOP_UP_FRACTION * planned:
             return
-        f = self._feats
-        job = self._replenish_job(left, self._calib, None, f.left_raw, f.right_raw,
-                                  f.left_ideal[:, 0] - f.right_ideal[:, 0], len(f), first=False)
-        if job is None:
-            return
-        right_m, _ = self._matched(left, right, None, None, stats)
-        added = stats.n_added
-        self._add(replenish(left, right, right_m, job, CLOCK, self._float(left),
-                            self._float(right)), stats)
-        stats.n_added += added
+        new = self._replenish_survivors(left, right, self._calib, stats, None, first=False)
+        if new is not None:
+            added = stats.n_added
+            self._add(new.result(), stats)
+            stats.n_added += added
 
 
 class _Finish:
