@@ -5,7 +5,7 @@ import pytest
 
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.estimation.estimator import MotionEstimator
-from stereo_vo_ros.estimation.motion import transform_from_velocity
+from stereo_vo_ros.estimation.motion import TransferModel, transform_from_velocity
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, TrackingStatus
 from stereo_vo_ros.road.ground_plane import fit_ground_plane, ground_mask, road_speed, triangulate
@@ -62,8 +62,13 @@ def test_ground_plane_is_found_among_walls_and_vehicles():
     pts = np.vstack([road, other])
     pl, pr, _, _ = observe(calib, pts, np.eye(4))
     np.testing.assert_allclose(triangulate(calib, pl, pr), pts, atol=1e-6)
-    mask = ground_mask(calib, pl, pr, cfg, np.random.default_rng(0))
+    mask = ground_mask(triangulate(calib, pl, pr), cfg, np.random.default_rng(0))
     np.testing.assert_array_equal(mask, np.arange(len(pts)) < len(road))
+    # The estimator's transfer model triangulates the same points.
+    model = TransferModel(calib, pl, pr, DT)
+    np.testing.assert_allclose(model.points(), pts, atol=1e-6)
+    np.testing.assert_array_equal(ground_mask(model.points(), cfg, np.random.default_rng(0)),
+                                  mask)
 
 
 def test_triangulation_of_a_raw_rig_with_a_rotated_right_camera():
@@ -74,10 +79,15 @@ def test_triangulation_of_a_raw_rig_with_a_rotated_right_camera():
     Xr = X @ R_rl.T + t_rl
     right = (Xr @ K2.T)[:, :2] / Xr[:, 2:]
     np.testing.assert_allclose(triangulate(raw, left, right), X, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(TransferModel(raw, left, right, DT).points(), X, rtol=1e-6,
+                               atol=1e-6)
     # Parallel rays (zero disparity) meet nowhere: NaN, also on a rectified rig.
     kitti = kitti_calibration()
-    assert np.isnan(triangulate(kitti, np.array([[600.0, 200.0], [300.0, 250.0]]),
-                                np.array([[600.0, 200.0], [300.0, 250.0]]))).all()
+    same = np.array([[600.0, 200.0], [300.0, 250.0]])
+    assert np.isnan(triangulate(kitti, same, same)).all()
+    assert np.isnan(TransferModel(kitti, same, same, DT).points()).all()
+    # Negative disparity: behind the camera.
+    assert np.isnan(TransferModel(kitti, same, same + [5.0, 0.0], DT).points()).all()
     far = triangulate(kitti, np.array([[600.0, 200.0]]), np.array([[599.0, 200.0]]))
     assert far[0, 2] == pytest.approx(kitti.K_left[0, 0] * kitti.baseline_m)
     # Behind the camera, or not finite: NaN.
@@ -99,7 +109,7 @@ def test_no_ground_plane_without_an_admissible_road(scene):
     assert fit_ground_plane(pts, cfg, np.random.default_rng(0)) is None
     calib = kitti_calibration()
     pl, pr, _, _ = observe(calib, pts, np.eye(4))
-    assert not ground_mask(calib, pl, pr, cfg, np.random.default_rng(0)).any()
+    assert not ground_mask(triangulate(calib, pl, pr), cfg, np.random.default_rng(0)).any()
 
 
 def co_moving_scene(rng):

@@ -300,8 +300,7 @@ class MotionEstimator:
         if cfg.ransac.enabled:
             weights = None
             if cfg.ransac.ground_weight != 1.0:
-                on_ground = ground_mask(calib, sub.prev_left, sub.prev_right, cfg.ransac,
-                                        self.ground_rng)
+                on_ground = ground_mask(model.points(), cfg.ransac, self.ground_rng)
                 weights = np.where(on_ground, cfg.ransac.ground_weight, 1.0)
             rcfg = cfg.ransac
             if self.fresh:

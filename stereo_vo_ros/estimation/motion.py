@@ -204,6 +204,23 @@ class TransferModel:
     def __len__(self) -> int:
         return len(self.X)
 
+    def points(self) -> np.ndarray:
+        """
+        Return the previous pair's 3-D matches as an (N, 3) array, left camera frame (metres).
+
+        Where the ray of ``prev_left`` meets the plane back-projected from the line through
+        ``prev_right`` (the transfer's own triangulation: depth from the disparity along the
+        epipolar line). NaN rows where the point is not in front of the camera, not finite,
+        or at infinity up to rounding (zero disparity: ``X`` has unit norm, so a homogeneous
+        part below ``1e-9`` is a point beyond about 1e9 m).
+        """
+        X = self.X
+        with np.errstate(all='ignore'):
+            pts = X[:, :3] / X[:, 3:]
+            bad = ~(np.isfinite(pts.sum(axis=1)) & (pts[:, 2] > 0) & (X[:, 3] > 1e-9))
+        pts[bad] = np.nan
+        return pts
+
     def previous_noise_gain(self, y: np.ndarray, step_px: float = 0.5) -> np.ndarray:
         """
         Sensitivity of the predictions to the previous observations.

@@ -142,17 +142,15 @@ def fit_ground_plane(points: np.ndarray, cfg: RansacConfig, rng: np.random.Gener
     return normal[best], float(d[best])
 
 
-def ground_mask(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
-                cfg: RansacConfig, rng: np.random.Generator) -> np.ndarray:
+def ground_mask(points: np.ndarray, cfg: RansacConfig, rng: np.random.Generator) -> np.ndarray:
     """
-    Which stereo matches lie on the ground plane (within ``cfg.ground_tolerance_m``).
+    Which points lie on the ground plane (within ``cfg.ground_tolerance_m``).
 
     Parameters
     ----------
-    calib : StereoCalibration
-        Calibration of the pair.
-    left, right : np.ndarray
-        (N, 2) ideal pixels of the matches.
+    points : np.ndarray
+        (N, 3) triangulated stereo matches in the left camera's optical frame (m), NaN rows
+        allowed: ``triangulate``, or the estimator's ``TransferModel.points``.
     cfg : RansacConfig
         Ground-plane settings.
     rng : np.random.Generator
@@ -163,7 +161,7 @@ def ground_mask(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     (N,) bool; all False when no ground plane was found.
 
     """
-    pts = triangulate(calib, left, right)
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
     plane = fit_ground_plane(pts, cfg, rng)
     if plane is None:
         return np.zeros(len(pts), bool)
