@@ -39,7 +39,9 @@ Usage::
 
     python benchmarks/bench_node_latency.py [--data ../shared/data] [--frames 40]
         [--rates 10 15 20 30 40 60] [--seconds 4] [--delivery-pairs 250]
-        [--best-effort] [--compressed] [--publisher-profile XML]
+        [--best-effort] [--compressed] [--publisher-profile XML] [--render 1280x720]
+
+``--render WxH`` publishes a rendered city sequence of that size instead of the clip.
 """
 
 from __future__ import annotations
@@ -81,10 +83,15 @@ KITTI_CLIP = 'kitti01_f0000-0050'
 SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 
 
-def load_frames(data: Path, n: int):
-    """Return (left list, right list, P0, P1, frame period s) at 1241x376."""
+def load_frames(data: Path, n: int, render_size: tuple[int, int] | None = None):
+    """
+    Return (left list, right list, P0, P1, frame period s).
+
+    The KITTI clip (1241x376) when present and no ``render_size`` (width, height) is asked for,
+    else a rendered synthetic city sequence of that size (1241x376 by default).
+    """
     clip = data / KITTI_CLIP
-    if (clip / 'calib.txt').exists():
+    if render_size is None and (clip / 'calib.txt').exists():
         calib = {line.split(':')[0]: np.array(line.split()[1:], float).reshape(3, 4)
                  for line in (clip / 'calib.txt').read_text().splitlines() if line.strip()}
         names = sorted((clip / 'image_0').glob('*.png'))[:n]
@@ -94,10 +101,12 @@ def load_frames(data: Path, n: int):
         print(f'frames: {len(left)} of {clip} ({left[0].shape[1]}x{left[0].shape[0]})')
         return left, right, calib['P0'], calib['P1'], 0.1
     from stereo_vo_ros.synthetic import render_sequence, SequenceSpec
-    spec = SequenceSpec.preset('urban', n_frames=n)
+    size = {} if render_size is None else {'width': render_size[0], 'height': render_size[1]}
+    spec = SequenceSpec.preset('urban', n_frames=n, **size)
     frames = list(render_sequence(spec))
     P0, P1 = spec.projections()
-    print(f'frames: {n} rendered ({spec.width}x{spec.height}; {clip} not found)')
+    why = 'as asked' if render_size else f'{clip} not found'
+    print(f'frames: {n} rendered ({spec.width}x{spec.height}; {why})')
     return [f.left for f in frames], [f.right for f in frames], P0, P1, 1.0 / spec.frame_rate_hz
 
 
@@ -230,9 +239,20 @@ def main() -> int:
                         help='publish jpeg (quality 90) on <topic>/compressed')
     parser.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='extra node parameter (repeatable), e.g. ros.qos:=reliable')
+    parser.add_argument('--render', metavar='WxH',
+                        help='publish a rendered city sequence of this size, e.g. 1280x720, '
+                        'instead of the KITTI clip')
     args = parser.parse_args()
+    render_size = None
+    if args.render:
+        try:
+            render_size = tuple(int(v) for v in args.render.lower().split('x'))
+            if len(render_size) != 2:
+                raise ValueError(args.render)
+        except ValueError:
+            parser.error(f'--render wants WxH, got {args.render!r}')
 
-    left, right, P0, P1, period = load_frames(args.data, args.frames)
+    left, right, P0, P1, period = load_frames(args.data, args.frames, render_size)
     size = (left[0].shape[1], left[0].shape[0])
     pub_profile = args.publisher_profile or args.fastdds_profile
     node_profile = args.node_profile or args.fastdds_profile

@@ -52,12 +52,12 @@ def run_frames(frames: Iterable[StereoFrame], config: Config, max_frames: int | 
     """Run the pipeline over frames; ignored frames (non-increasing stamps) are left out."""
     vo = StereoOdometry(config)
     stamps, poses, statuses, timings, results = [], [], [], [], []
-    rig, calibration = None, None
+    calibration = None
     for i, frame in enumerate(frames):
         if max_frames is not None and i >= max_frames:
             break
         res = vo.process(frame)
-        rig, calibration = res.rig, frame.calibration
+        calibration = frame.calibration
         if progress is not None:
             progress(res)
         if not res.accepted:
@@ -68,6 +68,8 @@ def run_frames(frames: Iterable[StereoFrame], config: Config, max_frames: int | 
         timings.append(res.timings_ms)
         if keep_results:
             results.append(res)
+    vo.close()  # the last pair's rig update
+    rig = vo.rig_estimate()
     return RunOutput(np.asarray(stamps, np.float64),
                      np.asarray(poses, np.float64).reshape(-1, 4, 4), statuses, timings,
                      results, rig, calibration)

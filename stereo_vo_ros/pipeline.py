@@ -6,7 +6,12 @@ The images-to-odometry pipeline: one object, one call per stereo pair.
     tracker (Huang et al.) -> rig correction -> bucketing -> RANSAC + ISPKF (Kitt et al.) -> rig
     refinement -> rolling-vehicle prior (fused) -> road alignment (fused) -> pose integration
 
-and handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
+What the pose of a pair does not need comes after it: ``process`` returns the pose, and the
+rest (the rig refinement's update, waiting for the tracker's new corners) runs at the start of
+the next call or when the caller asks for it (``settle``, which the ROS node calls after
+publishing). Results do not depend on which.
+
+It handles the first frame, lost tracking (re-detection, constant-velocity coasting with an
 inflated covariance for at most ``pipeline.max_lost_time_s``), calibration that changes between
 frames, gaps (the time step comes from the stamps) and stamps that do not increase. It imports
 no ROS; the node and the offline tools both drive it.
@@ -114,11 +119,15 @@ class StereoOdometry:
         #: Online estimate of the rig's error (``rig``); kept by ``reset()``: it belongs to the
         #: cameras, not to the trajectory. A new calibration starts it over.
         self.rig = RigCalibrator(self.config.rig)
+        #: The last pair's work that its pose did not need (``settle``): the timings of that
+        #: pair and its rig update (None without one), or None.
+        self._unsettled: tuple | None = None
         self.reset()
 
     # -- control -----------------------------------------------------------------------
     def reset(self) -> None:
-        """Start over: identity pose, zero velocity, no features."""
+        """Start over: identity pose, zero velocity, no features (the rig estimate stays)."""
+        self.settle()
         self.T_world_cam = np.eye(4)
         self.pose_cov = np.zeros((6, 6))
         self._prev_stamp: float | None = None
@@ -146,6 +155,7 @@ class StereoOdometry:
 
     def update_config(self, config: Config) -> None:
         """Apply a new configuration (run-time changes of thresholds) without a reset."""
+        self.settle()
         self.config = config
         self.tracker.cfg = config.tracker
         self.tracker.bucketing_cfg = config.bucketing
@@ -165,8 +175,45 @@ class StereoOdometry:
                        preload=WORKER_MODULES)
 
     def close(self) -> None:
-        """Stop the worker; the pipeline then runs in the caller's thread only."""
+        """Finish the last pair's work, stop the worker (later calls run in this thread)."""
+        self.settle()
         self.workers.close()
+
+    def settle(self) -> float:
+        """
+        Run the last pair's work that its pose did not need; return its time (ms).
+
+        That is the rig refinement's update from the pair (``rig``), which moves the estimate
+        the next pair's correction and motion prior use, and the wait for the tracker's
+        replenishment (new corners for the next pair, found on the worker). ``process``
+        returns the pose before them and runs them first thing in the next call; a caller with
+        time between pairs (the ROS node, once the odometry is published) calls this to take
+        them out of the time to the next pose. Once they ran, the pair's ``timings_ms`` has
+        the tracker's stage times (``track.*``) and ``rig`` includes the update;
+        ``timings_ms['after_pose']`` is their time (0.0 until then). Nothing to do: 0.0.
+        An error of the replenishment is raised here.
+        """
+        work, self._unsettled = self._unsettled, None
+        if work is None:
+            return 0.0
+        timings, rig_update = work
+        t0 = time.perf_counter()
+        try:
+            if rig_update is not None:  # first: the worker may still be finding corners
+                update, args = rig_update
+                update(*args)
+                timings['rig'] = timings.get('rig', 0.0) + (time.perf_counter() - t0) * 1e3
+        finally:
+            self._join_tracker(timings)
+            ms = (time.perf_counter() - t0) * 1e3
+            timings['after_pose'] = ms
+        return ms
+
+    def rig_estimate(self):
+        """Return the rig refinement's estimate (``RigEstimate``); None if off or before a pair."""
+        if not self.config.rig.enabled or self._prev_calib is None:
+            return None
+        return self.rig.estimate(self._prev_calib)
 
     @property
     def status(self) -> TrackingStatus:
@@ -185,6 +232,7 @@ class StereoOdometry:
 
         """
         t_start = time.perf_counter()
+        self.settle()
         calib = frame.calibration
         validate_images(frame.left, frame.right, calib)
         stamp = float(frame.stamp_s)
@@ -203,11 +251,11 @@ class StereoOdometry:
         if prev_stamp is None:
             self._track(frame, None, timings)
             self._road_step(frame, 0.0, False, timings)
-            self._join_tracker(timings)
             self._rig_prev_left = self.tracker.previous_left()
             self._commit(stamp, calib, TrackingStatus.INITIALIZING)
-            return self._result(stamp, TrackingStatus.INITIALIZING, t_start, timings,
-                                message='first frame: features detected')
+            return self._after_pose(self._result(stamp, TrackingStatus.INITIALIZING, t_start,
+                                                 timings,
+                                                 message='first frame: features detected'))
         dt = stamp - prev_stamp
         if dt > self.config.pipeline.max_gap_s:
             LOG.warning('gap of %.3f s: velocity re-initialised', dt)
@@ -243,12 +291,13 @@ class StereoOdometry:
         if est is not None and self.config.rig.enabled:
             timings['rig'] = rig_ms
         ok = est is not None and est.status is TrackingStatus.OK
+        rig_update = None
         if ok and not calib_changed and self.config.rig.enabled:
-            t0 = time.perf_counter()
-            self.rig.update(corr, est.inliers, est.T_prev_cur, dt, prev_calib, calib,
-                            self.tracker.last_pair(), self.config.tracker.win_size_px,
-                            coupling, track.stereo_klt_right[:, 1])
-            timings['rig'] += (time.perf_counter() - t0) * 1e3
+            # After the pose (see ``settle``): nothing of this pair depends on it.
+            rig_update = (self.rig.update, (
+                corr, est.inliers, est.T_prev_cur, dt, prev_calib, calib,
+                self.tracker.last_pair(), self.config.tracker.win_size_px, coupling,
+                track.stereo_klt_right[:, 1]))
         if ok:
             self._lost_time = 0.0
             status = TrackingStatus.OK
@@ -268,17 +317,23 @@ class StereoOdometry:
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
         vehicle_fused = ok and self._vehicle_step(dt)
         road_fused = self._road_step(frame, dt, ok and not calib_changed, timings)
-        self._join_tracker(timings)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._rig_prev_left = self.tracker.previous_left()
         self._commit(stamp, calib, status)
-        return self._result(stamp, status, t_start, timings, corr=corr,
-                            inliers=est.inliers if est is not None else None,
-                            iterations=est.iterations if est is not None else 0,
-                            message=message, road_fused=road_fused,
-                            vehicle_fused=vehicle_fused)
+        return self._after_pose(self._result(
+            stamp, status, t_start, timings, corr=corr,
+            inliers=est.inliers if est is not None else None,
+            iterations=est.iterations if est is not None else 0, message=message,
+            road_fused=road_fused, vehicle_fused=vehicle_fused), rig_update)
 
     # -- steps -------------------------------------------------------------------------
+    def _after_pose(self, res: OdometryResult, rig_update: tuple | None = None
+                    ) -> OdometryResult:
+        """Leave the pair's remaining work (see ``settle``) for later; return ``res``."""
+        res.timings_ms['after_pose'] = 0.0
+        self._unsettled = (res.timings_ms, rig_update)
+        return res
+
     def _check_velocity_state(self) -> None:
         """Re-initialise the velocity if its mean or covariance became unusable."""
         mean, cov = self.estimator.mean, self.estimator.cov
@@ -466,7 +521,7 @@ class StereoOdometry:
             n_tracked=n_tracked, n_inliers=n_inl, iterations=iterations, timings_ms=timings,
             message=message, features=corr, inliers=inliers, accepted=accepted,
             road_fused=road_fused, vehicle_fused=vehicle_fused,
-            rig=self.rig.estimate(self._prev_calib) if self.config.rig.enabled else None)
+            rig=self.rig_estimate())
         return res
 
 

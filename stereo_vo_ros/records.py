@@ -208,7 +208,10 @@ class OdometryResult:
     n_tracked, n_inliers, iterations : int
         Stereo correspondences handed to the estimator, inliers kept, filter iterations.
     timings_ms : dict
-        Milliseconds per stage (``track``, ``estimate``, ``total``, ...).
+        Milliseconds per stage (``track``, ``estimate``, ``rig``, ...); ``total`` is the time
+        ``process`` took to the pose. With the rig refinement the pair's rig update runs after
+        the pose (``StereoOdometry.settle``): ``after_pose`` is its time (0.0 until it ran),
+        and it is added to ``rig`` then.
     message : str
         Human-readable reason when the status is not OK.
     features : Correspondences or None
@@ -223,8 +226,9 @@ class OdometryResult:
     vehicle_fused : bool
         Whether the rolling-vehicle prior (``vehicle`` section) was fused into it.
     rig : RigEstimate or None
-        The online estimate of the stereo rig's error after this pair (``rig`` section); None
-        when the refinement is off.
+        The online estimate of the stereo rig's error this pair's pose used (``rig``
+        section); None when the refinement is off. The pair's own update follows the pose
+        (``StereoOdometry.settle``; ``StereoOdometry.rig_estimate()`` then includes it).
 
     """
 

@@ -21,6 +21,7 @@ from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
+from stereo_vo_ros.synthetic.spec import RIG_ERROR
 from stereo_vo_ros.tracking.affine_klt import refine_affine
 import yaml
 
@@ -274,6 +275,40 @@ def test_pipeline_without_the_rig_behaves_as_before():
         assert b.rig is not None and b.rig.updates == 0
         np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
     assert a.status is TrackingStatus.OK
+
+
+def test_work_after_the_pose_runs_in_settle():
+    """
+    process() returns the pose before the pair's rig update and the tracker's new corners.
+
+    settle() runs them, or the next call: poses, tracker and rig estimate are the same either
+    way; their time is the pair's ``after_pose``, the update's also in its ``rig``.
+    """
+    spec = SequenceSpec.preset('demo', n_frames=6, moving_objects=0, **RIG_ERROR)
+    renderer = StereoRenderer(spec)
+    frames = [renderer.render(i).stereo_frame(spec.calibration()) for i in range(6)]
+    settling, lazy = StereoOdometry(EVERY_PAIR), StereoOdometry(EVERY_PAIR)
+    grew = 0
+    for f in frames:
+        a = settling.process(f)
+        b = lazy.process(StereoFrame(f.left, f.right, f.stamp_s, f.calibration))
+        np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
+        assert a.timings_ms['after_pose'] == 0.0 and 'track.total' not in a.timings_ms
+        rig_ms = a.timings_ms.get('rig', 0.0)
+        spent = settling.settle()
+        assert spent > 0.0 and a.timings_ms['after_pose'] == spent
+        assert a.timings_ms['track.total'] > 0.0  # the tracker's stage times came in
+        assert a.timings_ms.get('rig', 0.0) >= rig_ms
+        assert settling.settle() == 0.0  # once
+        if a.rig is not None:
+            grew += settling.rig_estimate().updates - a.rig.updates
+    assert grew >= 3
+    np.testing.assert_array_equal(settling.tracker.feature_points()[0],
+                                  lazy.tracker.feature_points()[0])
+    lazy.close()  # runs the last update
+    np.testing.assert_array_equal(settling.rig_estimate().theta, lazy.rig_estimate().theta)
+    assert settling.rig_estimate().updates == lazy.rig_estimate().updates
+    settling.close()
 
 
 def test_refined_calibration_reproduces_the_rig_error():

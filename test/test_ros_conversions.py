@@ -8,6 +8,7 @@ from sensor_msgs.msg import Image
 from stereo_vo_ros.errors import CalibrationError, ImageError
 from stereo_vo_ros.records import Correspondences, OdometryResult, TrackingStatus
 from stereo_vo_ros.ros import conversions as conv
+from stereo_vo_ros.ros.diagnostics import processing_ms
 
 RNG = np.random.default_rng(7)
 
@@ -285,6 +286,16 @@ def test_diagnostic_status_values():
     assert status.level == DiagnosticStatus.WARN
     assert {kv.key: kv.value for kv in status.values} == {'inliers': '3',
                                                           'processing_ms': '12.3457'}
+
+
+def test_processing_time_adds_the_work_after_the_pose():
+    res = OdometryResult(0.0, np.eye(4), np.zeros((6, 6)), np.zeros(6), np.zeros((6, 6)),
+                         TrackingStatus.OK, timings_ms={'total': 10.0})
+    assert processing_ms(res) == 10.0
+    res.timings_ms['after_pose'] = 0.75  # the pipeline's settle() ran
+    assert processing_ms(res) == 10.75
+    assert np.isnan(processing_ms(OdometryResult(0.0, np.eye(4), np.zeros((6, 6)), np.zeros(6),
+                                                 np.zeros((6, 6)), TrackingStatus.OK)))
 
 
 def test_debug_image_draws_inliers_green_and_outliers_red():

@@ -279,6 +279,16 @@ def exposure_problem(grey: np.ndarray) -> tuple[str, int] | None:
     return None
 
 
+def processing_ms(res: OdometryResult) -> float:
+    """
+    Return a pair's processing time (ms): to its pose, and its work after the pose once run.
+
+    (``timings_ms`` ``total`` and ``after_pose``, see ``StereoOdometry.settle``.)
+    """
+    t = res.timings_ms
+    return float(t.get('total', np.nan)) + float(t.get('after_pose', 0.0))
+
+
 def rig_values(rig: RigEstimate | None) -> dict[str, Any]:
     """Diagnostic values of the online rig refinement (``rig.*``; see ``RigEstimate``)."""
     if rig is None:
@@ -426,8 +436,7 @@ class NodeHealth:
             'iterations': res.iterations if res is not None else 0,
             'road_fused': bool(res.road_fused) if res is not None else False,
             'vehicle_fused': bool(res.vehicle_fused) if res is not None else False,
-            'processing_ms': float(res.timings_ms.get('total', np.nan)) if res is not None
-            else float('nan'),
+            'processing_ms': processing_ms(res) if res is not None else float('nan'),
             'latency_ms': self.latency_ms,
             'input_rate_hz': rate,
             'pair_arrival_gap_ms': float(np.mean(self._pair_gaps_ms)) if self._pair_gaps_ms

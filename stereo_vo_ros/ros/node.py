@@ -66,7 +66,7 @@ from . import dds
 from .diagnostics import (  # noqa: F401 (constants re-exported)
     ERROR_HOLD_S, exposure_problem, EXPOSURE_WARN_FRACTION, LibraryLogBridge, LOG_THROTTLE_KEYS,
     LOG_THROTTLE_S, NodeHealth, PAIR_GAP_HINT_MS, PAIR_GAP_WINDOW, PARTNER_WINDOW_S, ProblemLog,
-    STALE_INPUT_S, unmatched_message, WARN_HOLD_S)
+    processing_ms, STALE_INPUT_S, unmatched_message, WARN_HOLD_S)
 from .frames import (base_pose_from_msg, camera_pose_from_base, CameraMount, path_msg, tf_msg,
                      TFMessage)
 from .parameters import (  # noqa: F401 (parameter_descriptor re-exported)
@@ -350,7 +350,7 @@ class StereoVONode(Node):
             self._slot_lock.notify()
         if dropped:
             res = self._last_result
-            busy = f'{res.timings_ms.get("total", float("nan")):.1f} ms' if res else 'unknown'
+            busy = f'{processing_ms(res):.1f} ms' if res else 'unknown'
             self._problems.log('warning', 'stereo pair dropped: pairs arrive faster than they '
                                f'are processed (last processing time {busy}); the newest pair '
                                'is processed', key='dropped')
@@ -461,6 +461,8 @@ class StereoVONode(Node):
             return
         self._publish(pair, result, frame.left)
         self._health.latency_ms = (time.perf_counter() - t_arrival) * 1e3
+        with self._pipeline_lock:  # the pair's work its pose did not need, while idle
+            self._pipeline.settle()
 
     def _publish(self, pair: StereoPair, result: OdometryResult, left: np.ndarray) -> None:
         cfg = self._config.ros
