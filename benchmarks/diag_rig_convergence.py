@@ -63,6 +63,7 @@ def main() -> int:
         vo = StereoOdometry(Config())
         for left, right, stamp in zip(data['left'], data['right'], data['stamps']):
             vo.process(StereoFrame(left, right, float(stamp), calib))
+        vo.close()  # also runs the last pair's rig update
         est, true = vo.rig.theta, true_theta(spec)
         c = offsets_at_centre(calib.K_right)
         w, h = calib.size
@@ -72,7 +73,6 @@ def main() -> int:
         (tr, td), (er, ed) = c @ true, c @ est
         print(f'{preset:14s} {tr:9.3f} {er:8.3f} {td:9.3f} {ed:8.3f} {diff[0]:7.3f} '
               f'{diff[1]:7.3f} {vo.rig.updates:7d}', flush=True)
-        vo.close()
     return 0
 
 

@@ -119,15 +119,15 @@ class StereoOdometry:
         #: Online estimate of the rig's error (``rig``); kept by ``reset()``: it belongs to the
         #: cameras, not to the trajectory. A new calibration starts it over.
         self.rig = RigCalibrator(self.config.rig)
-        #: The last pair's work that its pose did not need (``settle``): the timings of that
-        #: pair and its rig update (None without one), or None.
+        #: The last pair's work that its pose did not need (``settle``): that pair's result and
+        #: its rig update (None without one), or None.
         self._unsettled: tuple | None = None
         self.reset()
 
     # -- control -----------------------------------------------------------------------
     def reset(self) -> None:
         """Start over: identity pose, zero velocity, no features (the rig estimate stays)."""
-        self.settle()
+        self._settle_quietly('reset')
         self.T_world_cam = np.eye(4)
         self.pose_cov = np.zeros((6, 6))
         self._prev_stamp: float | None = None
@@ -155,7 +155,7 @@ class StereoOdometry:
 
     def update_config(self, config: Config) -> None:
         """Apply a new configuration (run-time changes of thresholds) without a reset."""
-        self.settle()
+        self._settle_quietly('configuration change')
         self.config = config
         self.tracker.cfg = config.tracker
         self.tracker.bucketing_cfg = config.bucketing
@@ -176,8 +176,18 @@ class StereoOdometry:
 
     def close(self) -> None:
         """Finish the last pair's work, stop the worker (later calls run in this thread)."""
-        self.settle()
-        self.workers.close()
+        try:
+            self._settle_quietly('close')
+        finally:
+            self.workers.close()
+
+    def _settle_quietly(self, why: str) -> None:
+        """``settle`` where its error must not stop the caller: logged instead."""
+        try:
+            self.settle()
+        except Exception as exc:  # noqa: BLE001 - the caller goes on (reset, close, ...)
+            LOG.error("the last pair's work after its pose failed before the %s: %s: %s", why,
+                      type(exc).__name__, exc)
 
     def settle(self) -> float:
         """
@@ -188,21 +198,24 @@ class StereoOdometry:
         replenishment (new corners for the next pair, found on the worker). ``process``
         returns the pose before them and runs them first thing in the next call; a caller with
         time between pairs (the ROS node, once the odometry is published) calls this to take
-        them out of the time to the next pose. Once they ran, the pair's ``timings_ms`` has
-        the tracker's stage times (``track.*``) and ``rig`` includes the update;
-        ``timings_ms['after_pose']`` is their time (0.0 until then). Nothing to do: 0.0.
-        An error of the replenishment is raised here.
+        them out of the time to the next pose. Once they ran, the pair's result is complete:
+        its ``rig`` is the estimate after its update, its ``timings_ms`` has the tracker's
+        stage times (``track.*``), ``rig`` includes the update and ``after_pose`` is the time
+        of both (0.0 until then). Nothing to do: returns 0.0. An error of either is raised
+        here, once (``reset``, ``update_config`` and ``close`` log it and go on).
         """
         work, self._unsettled = self._unsettled, None
         if work is None:
             return 0.0
-        timings, rig_update = work
+        res, rig_update = work
+        timings = res.timings_ms
         t0 = time.perf_counter()
         try:
             if rig_update is not None:  # first: the worker may still be finding corners
                 update, args = rig_update
                 update(*args)
                 timings['rig'] = timings.get('rig', 0.0) + (time.perf_counter() - t0) * 1e3
+                res.rig = self.rig_estimate()
         finally:
             self._join_tracker(timings)
             ms = (time.perf_counter() - t0) * 1e3
@@ -225,10 +238,15 @@ class StereoOdometry:
         """
         Process one stereo pair and return the integrated pose.
 
+        Runs the previous pair's work after its pose first, if nobody called ``settle``.
+
         Raises
         ------
         ImageError
-            The images cannot be used with the frame's calibration (nothing changes then).
+            The images cannot be used with the frame's calibration (nothing changes then,
+            apart from the previous pair's work after its pose).
+        Exception
+            What that work raised (see ``settle``); the frame is not processed.
 
         """
         t_start = time.perf_counter()
@@ -331,7 +349,7 @@ class StereoOdometry:
                     ) -> OdometryResult:
         """Leave the pair's remaining work (see ``settle``) for later; return ``res``."""
         res.timings_ms['after_pose'] = 0.0
-        self._unsettled = (res.timings_ms, rig_update)
+        self._unsettled = (res, rig_update)
         return res
 
     def _check_velocity_state(self) -> None:

@@ -209,9 +209,10 @@ class OdometryResult:
         Stereo correspondences handed to the estimator, inliers kept, filter iterations.
     timings_ms : dict
         Milliseconds per stage (``track``, ``estimate``, ``rig``, ...); ``total`` is the time
-        ``process`` took to the pose. With the rig refinement the pair's rig update runs after
-        the pose (``StereoOdometry.settle``): ``after_pose`` is its time (0.0 until it ran),
-        and it is added to ``rig`` then.
+        ``process`` took (with the previous pair's work after its pose when that ran there).
+        A pair's work after its pose (the rig update, the wait for the tracker's new corners:
+        ``StereoOdometry.settle``) fills in ``after_pose`` (0.0 until then), ``track``,
+        ``track.*`` and ``rig`` once it ran.
     message : str
         Human-readable reason when the status is not OK.
     features : Correspondences or None
@@ -226,9 +227,9 @@ class OdometryResult:
     vehicle_fused : bool
         Whether the rolling-vehicle prior (``vehicle`` section) was fused into it.
     rig : RigEstimate or None
-        The online estimate of the stereo rig's error this pair's pose used (``rig``
-        section); None when the refinement is off. The pair's own update follows the pose
-        (``StereoOdometry.settle``; ``StereoOdometry.rig_estimate()`` then includes it).
+        The online estimate of the stereo rig's error after this pair (``rig`` section);
+        None when the refinement is off. Until the pair's update ran (it follows the pose:
+        ``StereoOdometry.settle``), the estimate its pose used.
 
     """
 

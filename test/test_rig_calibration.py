@@ -282,7 +282,8 @@ def test_work_after_the_pose_runs_in_settle():
     process() returns the pose before the pair's rig update and the tracker's new corners.
 
     settle() runs them, or the next call: poses, tracker and rig estimate are the same either
-    way; their time is the pair's ``after_pose``, the update's also in its ``rig``.
+    way; their time is the pair's ``after_pose``, the update's also in its ``rig``, and its
+    ``rig`` estimate is the one after the update.
     """
     spec = SequenceSpec.preset('demo', n_frames=6, moving_objects=0, **RIG_ERROR)
     renderer = StereoRenderer(spec)
@@ -295,13 +296,14 @@ def test_work_after_the_pose_runs_in_settle():
         np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
         assert a.timings_ms['after_pose'] == 0.0 and 'track.total' not in a.timings_ms
         rig_ms = a.timings_ms.get('rig', 0.0)
+        used = a.rig.updates  # the estimate the pose used
         spent = settling.settle()
         assert spent > 0.0 and a.timings_ms['after_pose'] == spent
         assert a.timings_ms['track.total'] > 0.0  # the tracker's stage times came in
         assert a.timings_ms.get('rig', 0.0) >= rig_ms
         assert settling.settle() == 0.0  # once
-        if a.rig is not None:
-            grew += settling.rig_estimate().updates - a.rig.updates
+        assert a.rig.updates == settling.rig_estimate().updates  # the result is complete
+        grew += a.rig.updates - used
     assert grew >= 3
     np.testing.assert_array_equal(settling.tracker.feature_points()[0],
                                   lazy.tracker.feature_points()[0])
@@ -309,6 +311,34 @@ def test_work_after_the_pose_runs_in_settle():
     np.testing.assert_array_equal(settling.rig_estimate().theta, lazy.rig_estimate().theta)
     assert settling.rig_estimate().updates == lazy.rig_estimate().updates
     settling.close()
+
+
+def test_a_failure_after_the_pose_is_raised_once_and_stops_no_reset(caplog):
+    """The deferred work's error: raised by the next process() once; reset()/close() go on."""
+    spec = SequenceSpec.preset('demo', n_frames=5, moving_objects=0)
+    renderer = StereoRenderer(spec)
+    frames = [renderer.render(i).stereo_frame(spec.calibration()) for i in range(5)]
+    vo = StereoOdometry(EVERY_PAIR)
+
+    def broken_update(*args):
+        raise RuntimeError('rig update failed')
+
+    vo.rig.update = broken_update
+    vo.process(frames[0])
+    assert vo.process(frames[1]).status is TrackingStatus.OK  # its update is left for later
+    with pytest.raises(RuntimeError, match='rig update failed'):
+        vo.process(frames[2])
+    assert vo.process(frames[2]).status is TrackingStatus.OK  # raised once; then as usual
+    with caplog.at_level('ERROR', logger='stereo_vo_ros'):
+        vo.reset()
+    assert 'rig update failed' in caplog.text and 'reset' in caplog.text
+    assert vo.tracker.num_features == 0 and vo.process(frames[3]).status is \
+        TrackingStatus.INITIALIZING
+    vo.process(frames[4])
+    caplog.clear()
+    with caplog.at_level('ERROR', logger='stereo_vo_ros'):
+        vo.close()
+    assert 'rig update failed' in caplog.text and vo.workers.kind == 'inline'
 
 
 def test_refined_calibration_reproduces_the_rig_error():
