@@ -11,6 +11,11 @@ estimates the motion. Where it runs is ``pipeline.worker``:
   which hold the GIL, so in one process they take turns.
 * ``thread``: a background thread (no extra process; measured to overlap little).
 
+Short work that overlaps an OpenCV call of the caller goes to a helper thread instead
+(``submit_local``; with two or more threads, whatever the kind): OpenCV's KLT releases the GIL,
+so NumPy in the helper runs next to it without copying images to another process. The tracker
+runs its aperture checks there while it tracks the features.
+
 With one thread (``pipeline.threads: 1``) everything runs inline in the caller's thread, in the
 same order; the results are the same either way. ``Workers`` belongs to one ``StereoOdometry``
 (no module state: several pipelines in one process each have their own worker). OpenCV's
@@ -316,7 +321,10 @@ class Workers:
         self.requested = kind
         self._pool: ThreadPoolExecutor | None = None
         self._process: ProcessWorker | None = None
+        #: The helper thread of ``submit_local`` (None with one thread).
+        self._helper: ThreadPoolExecutor | None = None
         if self.threads > 1:
+            self._helper = ThreadPoolExecutor(1, thread_name_prefix='stereo_vo_helper')
             if kind == 'process' and ProcessWorker.available():
                 self._process = ProcessWorker(preload)
             else:
@@ -328,6 +336,9 @@ class Workers:
 
     def close(self) -> None:
         """Stop the worker (the object then runs everything inline)."""
+        if self._helper is not None:
+            self._helper.shutdown(wait=True)
+            self._helper = None
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
@@ -359,6 +370,23 @@ class Workers:
         if self._pool is None:
             return _Done(fn, args)
         return self._pool.submit(fn, *args)
+
+    @property
+    def overlaps(self) -> bool:
+        """Whether ``submit_local`` runs next to the caller (else inline, before it returns)."""
+        return self._helper is not None
+
+    def submit_local(self, fn: Callable[..., Any], *args: Any) -> Future | _Done:
+        """
+        Start ``fn(*args)`` on the helper thread of this process; ``.result()`` joins it.
+
+        For short work next to an OpenCV call of the caller (which releases the GIL): the
+        arguments are shared, not copied, and must not change until the result is taken.
+        Inline (one thread), ``fn`` runs before this returns.
+        """
+        if self._helper is None:
+            return _Done(fn, args)
+        return self._helper.submit(fn, *args)
 
 
 def inline() -> Workers:

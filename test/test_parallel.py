@@ -54,9 +54,17 @@ def test_thread_worker_runs_in_the_background_and_joins():
         assert names and names[0] != threading.current_thread().name
         with pytest.raises(ValueError):
             workers.submit(_fail, 'boom').result()
+        # The helper thread of short overlaps (any kind of worker).
+        assert workers.overlaps
+        helper = workers.submit_local(lambda: threading.current_thread().name).result()
+        assert helper.startswith('stereo_vo_helper')
+        with pytest.raises(ValueError):
+            workers.submit_local(_fail, 'boom').result()
     finally:
         workers.close()
-    assert workers.threads == 1 and workers.kind == 'inline'
+    assert workers.threads == 1 and workers.kind == 'inline' and not workers.overlaps
+    assert workers.submit_local(lambda: threading.current_thread().name).result() == \
+        threading.current_thread().name
     # Closed or single-threaded: inline, the error still raised by result(), not by submit.
     assert workers.submit(lambda: threading.current_thread().name).result() == \
         threading.current_thread().name

@@ -19,10 +19,12 @@ import pytest
 from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfig
 from stereo_vo_ros.errors import ConfigError, ImageError
 from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
+from stereo_vo_ros.parallel import inline, Workers
 from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
 from stereo_vo_ros.tracking.detection import detect_corners
-from stereo_vo_ros.tracking.klt_checks import (bicircular_error, CheckSet, disparity_constraint,
-                                               eigen_ratio, flow_edge_ratio, gradient_matrix)
+from stereo_vo_ros.tracking.klt_checks import (aperture_checks, bicircular_error, CheckSet,
+                                               disparity_constraint, eigen_ratio,
+                                               flow_edge_ratio, gradient_matrix)
 from stereo_vo_ros.tracking.tracker import StereoTracker
 
 W, H = 400, 300
@@ -751,6 +753,51 @@ def test_aperture_check_drops_edge_features():
     res = off.track(*stripe_pair((0.0, 3.0)), calib)
     assert res.stats.failed['aperture'] == res.stats.n_previous > 50
     assert res.stats.n_tracked == 0 and res.stats.pass_points['temporal_fwd'] == 0
+
+
+def test_aperture_checks_test_every_point_on_its_own():
+    img = render((0.0, 0.0))
+    rng = np.random.default_rng(4)
+    pts = rng.uniform([20, 20], [W - 20, H - 20], (40, 2))
+    flow = rng.normal(0.0, 5.0, (40, 2))
+    eigen_ok, flow_ok = aperture_checks(img, pts, flow, 21, 15, 0.3, 0.5)
+    np.testing.assert_array_equal(eigen_ok, eigen_ratio(img, pts, 21) >= 0.3)
+    np.testing.assert_array_equal(flow_ok, flow_edge_ratio(img, pts, flow, 15) >= 0.5)
+    some = eigen_ok.nonzero()[0]  # the same values on a subset
+    np.testing.assert_array_equal(aperture_checks(img, pts[some], flow[some], 21, 15, 0.3,
+                                                  0.5)[1], flow_ok[some])
+    assert 0 < eigen_ok.sum() < 40 and 0 < flow_ok.sum() < 40
+    # Off (threshold 0, or no flow): every point passes.
+    for args in ((flow, 0.0, 0.0), (None, 0.0, 0.5)):
+        out = aperture_checks(img, pts, args[0], 21, 15, args[1], args[2])
+        assert all(o.all() and o.shape == (40,) for o in out)
+
+
+def test_aperture_checks_next_to_the_klt_pass_change_nothing():
+    """With a helper thread the checks run next to the temporal pass: the same features."""
+    calib = rectified_calib()
+    cfg = config(min_eigen_ratio=0.3, min_flow_edge_ratio_tracked=0.5)
+    helper = Workers(2, set_opencv=False, kind='thread')
+    try:
+        assert helper.overlaps and not inline().overlaps
+        alone, beside = StereoTracker(cfg, BucketingConfig()), \
+            StereoTracker(cfg, BucketingConfig(), helper)
+        flow = np.array([3.0, 1.0])
+
+        def prior(left, right):
+            return left + flow, right + flow
+
+        for k, motion in enumerate(((0.0, 0.0), (3.0, 1.0), (6.0, 2.0))):
+            a = alone.track(*pair(motion), calib, prior if k else None)
+            b = beside.track(*pair(motion), calib, prior if k else None)
+            for x, y in zip(dataclasses.astuple(a.correspondences),
+                            dataclasses.astuple(b.correspondences)):
+                np.testing.assert_array_equal(x, y)
+            assert a.stats.failed == b.stats.failed
+            assert a.stats.pass_points == b.stats.pass_points
+        assert a.stats.failed['aperture'] + a.stats.failed['flow_aperture'] > 0
+    finally:
+        helper.close()
 
 
 def test_gradient_matrix_sobel_is_opencv_sobel():

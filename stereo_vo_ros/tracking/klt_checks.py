@@ -305,6 +305,42 @@ def eigen_ratio(img: np.ndarray, pts: np.ndarray, win_size_px: int) -> np.ndarra
         return np.where(lmax > 0, lmin / lmax, 0.0)
 
 
+def aperture_checks(img: np.ndarray, pts: np.ndarray, flow: np.ndarray | None,
+                    win_size_px: int, flow_win_size_px: int, min_eigen_ratio: float,
+                    min_flow_edge_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """
+    Which KLT windows are well conditioned: ``eigen_ratio`` and ``flow_edge_ratio`` tests.
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) uint8 grey image holding the windows.
+    pts : np.ndarray
+        (N, 2) float pixel positions of the window centres.
+    flow : np.ndarray or None
+        (N, 2) expected displacements (pixels), or None (no flow test).
+    win_size_px, flow_win_size_px : int
+        Window sides of the two tests (pixels).
+    min_eigen_ratio, min_flow_edge_ratio : float
+        Thresholds (0: that test is off).
+
+    Returns
+    -------
+    eigen_ok, flow_ok : np.ndarray
+        (N,) bool each; a test that is off passes every point. Every point is tested by both
+        (per point, so the same values as testing only the points the other one passed).
+
+    """
+    n = len(np.asarray(pts).reshape(-1, 2))
+    eigen_ok = np.ones(n, bool)
+    flow_ok = np.ones(n, bool)
+    if min_eigen_ratio > 0 and n:
+        eigen_ok = eigen_ratio(img, pts, win_size_px) >= min_eigen_ratio
+    if flow is not None and min_flow_edge_ratio > 0 and n:
+        flow_ok = flow_edge_ratio(img, pts, flow, flow_win_size_px) >= min_flow_edge_ratio
+    return eigen_ok, flow_ok
+
+
 def flow_edge_ratio(img: np.ndarray, pts: np.ndarray, flow: np.ndarray,
                     win_size_px: int, min_flow_px: float = 1.0) -> np.ndarray:
     """

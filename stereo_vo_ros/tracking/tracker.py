@@ -43,8 +43,8 @@ from .adaptive_threshold import bicircular_threshold
 from .affine_klt import refine_affine
 from .detection import plan_detection
 from .features import as_grey_u8, empty_correspondences, FeatureSet
-from .klt_checks import (bicircular_error, BICIRCULAR_MODES, CheckSet, disparity_constraint,
-                         disparity_in_range, eigen_ratio, flow_edge_ratio, lk_pass,
+from .klt_checks import (aperture_checks, bicircular_error, BICIRCULAR_MODES, CheckSet,
+                         disparity_constraint, disparity_in_range, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
 from .photometric import PhotometricMatcher
 from .replenish import ExpectedFlow, NewCorners, replenish, ReplenishJob
@@ -322,6 +322,14 @@ class StereoTracker:
         raw_r[bad] = np.nan
         return raw_l, raw_r
 
+    @staticmethod
+    def _aperture_passed(aperture, failed: dict[str, int]) -> np.ndarray:
+        """Join ``aperture_checks``: (N,) bool of the features that pass; count the others."""
+        eigen_ok, flow_ok = aperture.result()
+        failed['aperture'] = int(np.count_nonzero(~eigen_ok))
+        failed['flow_aperture'] = int(np.count_nonzero(eigen_ok & ~flow_ok))
+        return eigen_ok & flow_ok
+
     def _expected_flow(self, prior: Prior | None, calib: StereoCalibration,
                        disparity: np.ndarray) -> ExpectedFlow | None:
         """
@@ -364,40 +372,47 @@ class StereoTracker:
         stats.used_prior = pred is not None
         t = clock()
         levels = cfg.predicted_pyramid_levels if pred is not None else cfg.pyramid_levels
-        alive = np.arange(n_prev)
-        if cfg.min_eigen_ratio > 0 and n_prev:
-            # Aperture check: on an edge-like window the flow along the edge would come from
-            # the initial flow (the motion prior), not from the image.
-            ok = eigen_ratio(prev_left, f.left_raw, win) >= cfg.min_eigen_ratio
-            failed['aperture'] = int(np.count_nonzero(~ok))
-            alive = alive[ok]
-        if pred is not None and cfg.min_flow_edge_ratio_tracked > 0 and len(alive):
-            # The same along the predicted flow, over the window the refinement will use.
-            ok = flow_edge_ratio(prev_left, f.left_raw[alive],
-                                 pred[0][alive] - f.left_raw[alive],
-                                 cfg.affine_win_size_px) >= cfg.min_flow_edge_ratio_tracked
-            failed['flow_aperture'] = int(np.count_nonzero(~ok))
-            alive = alive[ok]
-        npts['temporal_fwd'] = len(alive)
+        # Aperture checks: on an edge-like window the flow along the edge would come from the
+        # initial flow (the motion prior), not from the image; the same along the predicted
+        # flow, over the window the refinement will use. With a helper thread they run next to
+        # the KLT pass, which then tracks every feature (each point is tracked on its own, so
+        # the kept ones come out the same).
+        flow_tracked = None
+        if pred is not None and cfg.min_flow_edge_ratio_tracked > 0:
+            flow_tracked = pred[0] - f.left_raw
+        aperture = None
+        if n_prev and (cfg.min_eigen_ratio > 0 or flow_tracked is not None):
+            aperture = self.workers.submit_local(
+                aperture_checks, prev_left, f.left_raw, flow_tracked, win,
+                cfg.affine_win_size_px, cfg.min_eigen_ratio, cfg.min_flow_edge_ratio_tracked)
         # Photometric compensation: every KLT pass sees its second image mapped to the
         # brightness of its first (``photometric``; the images as given when they match). With
         # the prior, the windows at the features' positions in the four images give all maps.
         t_photo = clock()
         if pred is not None:
             self._photo.observe((prev_left, left, right, prev_right),
-                                (f.left_raw[alive], pred[0][alive], pred[1][alive],
-                                 f.right_raw[alive]))
+                                (f.left_raw, pred[0], pred[1], f.right_raw))
         spent = clock() - t_photo
         ms['photometric'] += spent * 1e3
         t += spent
         left_m, spent = self._matched(prev_left, left, None, None, stats)
         t += spent
+        passed = None  # aperture: which features may be tracked (None: all)
+        if aperture is not None and not self.workers.overlaps:
+            passed = self._aperture_passed(aperture, failed)
+        track = np.arange(n_prev) if passed is None else np.flatnonzero(passed)
         cur_l = f.left_raw.copy()
-        cur_l[alive], ok = lk_pass(prev_left, left_m, f.left_raw[alive],
-                                   None if pred is None else pred[0][alive], levels, win, iters)
+        cur_l[track], ok = lk_pass(prev_left, left_m, f.left_raw[track],
+                                   None if pred is None else pred[0][track], levels, win, iters)
+        tracked = np.zeros(n_prev, bool)
+        tracked[track] = ok
+        if passed is None:
+            passed = np.ones(n_prev, bool) if aperture is None else \
+                self._aperture_passed(aperture, failed)
+        npts['temporal_fwd'] = int(np.count_nonzero(passed))
         ms['temporal_fwd'] = (clock() - t) * 1e3
-        failed['temporal'] = int(np.count_nonzero(~ok))
-        alive = alive[ok]
+        failed['temporal'] = int(np.count_nonzero(passed & ~tracked))
+        alive = np.flatnonzero(passed & tracked)
 
         t = clock()
         npts['temporal_bwd'] = len(alive)
