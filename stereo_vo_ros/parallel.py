@@ -22,7 +22,8 @@ same order; the results are the same either way. ``Workers`` belongs to one ``St
 thread count is per process: the last pipeline created or reconfigured sets it.
 
 Linux is where the process worker runs (it maps the images from ``/dev/shm``); elsewhere, or
-when the worker cannot start or dies, the work runs in the caller's thread (logged once).
+when the worker cannot start, dies or hangs (no answer within ``RESULT_TIMEOUT_S``), the work
+runs in the caller's thread (logged once).
 """
 
 from __future__ import annotations
@@ -55,6 +56,11 @@ SHARED_MIN_BYTES = 1 << 16
 SHM_DIR = '/dev/shm'
 #: Kinds of worker (``pipeline.worker``).
 WORKER_KINDS = ('process', 'thread')
+#: A worker process that has not answered a job after this long (seconds) is taken as hung:
+#: it is killed and the job runs in the caller. A replenishment takes milliseconds.
+RESULT_TIMEOUT_S = 5.0
+#: The same for its first job, which also waits for the process to start and import its modules.
+STARTUP_TIMEOUT_S = 60.0
 
 
 def auto_threads(requested: int) -> int:
@@ -117,7 +123,8 @@ class ProcessWorker:
     ``SHARED_MIN_BYTES`` or more are copied into a shared-memory block instead of pickled. The
     next ``submit`` waits for the last job. Whatever cannot go (arguments that do not pickle
     here or unpickle there, no room for the shared block) or does not come back (a result that
-    does not pickle, the process died or was interrupted) runs inline.
+    does not pickle, the process died, hung for ``RESULT_TIMEOUT_S`` (``STARTUP_TIMEOUT_S``
+    for the first job) or the wait was interrupted) runs inline.
     """
 
     def __init__(self, preload: tuple[str, ...] = ()) -> None:
@@ -127,6 +134,7 @@ class ProcessWorker:
         self._shm: SharedMemory | None = None
         self._pending: _ProcessJob | None = None
         self._broken = False
+        self._answered = False  # the first answer also waits for the start-up
         self._start()
 
     @staticmethod
@@ -225,7 +233,12 @@ class ProcessWorker:
         if self._conn is None:  # closed meanwhile
             return _Done(fn, args)
         try:
+            timeout = RESULT_TIMEOUT_S if self._answered else STARTUP_TIMEOUT_S
+            if not self._conn.poll(timeout):
+                self._hung(timeout)
+                return _Done(fn, args)
             status, value = self._conn.recv()
+            self._answered = True
         except (EOFError, OSError) as exc:
             self._lost(exc)
             return _Done(fn, args)
@@ -254,6 +267,13 @@ class ProcessWorker:
 
     def _lost(self, why: object) -> None:
         logger.warning('worker process lost (%s); working in one thread from now on', why)
+        self.close()
+
+    def _hung(self, timeout: float) -> None:
+        logger.warning('worker process did not answer within %.1f s; stopped, working in one '
+                       'thread from now on', timeout)
+        if self._proc is not None:
+            self._proc.kill()  # also when it is stopped; close() then reaps it at once
         self.close()
 
     def _release_block(self) -> None:

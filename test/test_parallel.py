@@ -24,7 +24,7 @@ import types
 import numpy as np
 import pytest
 
-from stereo_vo_ros import Config, StereoOdometry
+from stereo_vo_ros import Config, parallel, StereoOdometry
 from stereo_vo_ros.config import ConfigError
 from stereo_vo_ros.parallel import auto_threads, ProcessWorker, Workers
 from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
@@ -114,6 +114,23 @@ def test_lost_worker_process_falls_back_to_the_caller(caplog):
             # The job is sent to a dead process: it runs inline instead, once, and says so.
             assert workers.submit(np.add, 2, 3).result() == 5
         assert 'worker process lost' in caplog.text
+        assert workers.submit(os.getpid).result() == os.getpid()
+    finally:
+        workers.close()
+
+
+@needs_process
+def test_hung_worker_process_is_stopped_and_the_caller_goes_on(caplog, monkeypatch):
+    monkeypatch.setattr(parallel, 'RESULT_TIMEOUT_S', 0.5)
+    workers = Workers(2, set_opencv=False)
+    try:
+        workers.wait_ready()
+        proc = workers._process._proc
+        os.kill(proc.pid, signal.SIGSTOP)  # alive, but it never answers
+        with caplog.at_level(logging.WARNING, logger='stereo_vo_ros.parallel'):
+            assert workers.submit(np.add, 2, 3).result() == 5
+        assert 'did not answer within 0.5 s' in caplog.text
+        assert proc.poll() == -signal.SIGKILL  # killed and reaped
         assert workers.submit(os.getpid).result() == os.getpid()
     finally:
         workers.close()
