@@ -14,7 +14,8 @@ estimates the motion. Where it runs is ``pipeline.worker``:
 Short work that overlaps an OpenCV call of the caller goes to a helper thread instead
 (``submit_local``; with two or more threads, whatever the kind): OpenCV's KLT releases the GIL,
 so NumPy in the helper runs next to it without copying images to another process. The tracker
-runs its aperture checks there while it tracks the features.
+runs its aperture checks there while it tracks the features, and then the brightness maps of
+its later passes.
 
 With one thread (``pipeline.threads: 1``) everything runs inline in the caller's thread, in the
 same order; the results are the same either way. ``Workers`` belongs to one ``StereoOdometry``

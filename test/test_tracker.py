@@ -971,6 +971,34 @@ def test_independent_exposure_jumps_of_the_cameras_keep_tracking(vignetting, use
     assert counts['uncompensated'][1] < 0.8 * counts['exposed'][1]
 
 
+def test_brightness_maps_made_ahead_on_a_helper_change_nothing():
+    """With a helper the stereo and bi-circular passes' images are mapped ahead: same output."""
+    calib = rectified_calib()
+    delta = (M2[0] - M1[0], M2[1] - M1[1])
+    changed = [exposed(img, g, o) for img, (g, o) in zip([*pair(M1), *pair(M2)], EXPOSURES)]
+    helper = Workers(2, set_opencv=False, kind='thread')
+    submitted = []
+
+    def spy(fn, *args):
+        submitted.append(fn.__name__)
+        return Workers.submit_local(helper, fn, *args)
+    helper.submit_local = spy
+    try:
+        outs = []
+        for workers in (inline(), helper):
+            tracker = StereoTracker(config(), BucketingConfig(), workers)
+            tracker.track(changed[0], changed[1], calib)
+            outs.append(tracker.track(changed[2], changed[3], calib, shift_prior(delta)))
+    finally:
+        helper.close()
+    assert submitted.count('apply_transfer') == 2  # right to left, previous right to right
+    for x, y in zip(dataclasses.astuple(outs[0].correspondences),
+                    dataclasses.astuple(outs[1].correspondences)):
+        np.testing.assert_array_equal(x, y)
+    assert outs[0].stats.failed == outs[1].stats.failed
+    assert len(outs[0].correspondences) > 100
+
+
 def test_photometric_map_is_not_applied_to_matching_images():
     """Equal exposures: the tracker sees the images as given (same output as switched off)."""
     calib = rectified_calib()

@@ -45,6 +45,7 @@ compares zero-mean windows scaled to equal contrast, which removes any local gai
 from __future__ import annotations
 
 import functools
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -311,7 +312,8 @@ class PhotometricMatcher:
     def __init__(self, enabled: bool = True) -> None:
         self.enabled = enabled
         self._cdfs: list[tuple[np.ndarray, np.ndarray]] = []
-        self._mapped: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        #: (reference, img, mapped image or the pending result of ``prefetch``)
+        self._mapped: list[tuple[np.ndarray, np.ndarray, Any]] = []
         self._stats: list[tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]] = []
         #: (gain, offset) of the last map computed.
         self.last: tuple[float, float] = (1.0, 0.0)
@@ -358,6 +360,40 @@ class PhotometricMatcher:
         self._stats = [] if stats is None else [
             (img, (stats[0][i], stats[1][i], stats[2][i])) for i, img in enumerate(images)]
 
+    def prefetch(self, pairs: tuple[tuple[np.ndarray, np.ndarray], ...],
+                 submit: Callable[..., Any]) -> None:
+        """
+        Start mapping observed images ahead of the ``matched`` calls that will want them.
+
+        For every ``(reference, img)`` pair whose map ``matched`` would fit to the statistics of
+        ``observe``, the map is fitted now and applied by ``submit(apply_transfer, img, gain,
+        offset)`` (e.g. on a helper thread: ``cv2.LUT`` releases the GIL); ``matched`` then
+        takes the result, the same image it would have made. Other pairs are left to
+        ``matched``.
+
+        Parameters
+        ----------
+        pairs : tuple
+            ``(reference, img)`` pairs of observed (H, W) uint8 images.
+        submit : callable
+            ``submit(fn, *args)`` returns an object whose ``result()`` is ``fn(*args)``.
+
+        """
+        if not self.enabled:
+            return
+        for reference, img in pairs:
+            if reference is img or any(ref is reference and src is img
+                                       for ref, src, _ in self._mapped):
+                continue
+            seen_img, seen_ref = self._observed(img), self._observed(reference)
+            if seen_img is None or seen_ref is None:
+                continue
+            fit = transfer_from_stats(*seen_img, *seen_ref)
+            if fit is None:
+                continue
+            self.last = fit
+            self._mapped.append((reference, img, submit(apply_transfer, img, *fit)))
+
     def _observed(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         for src, stats in self._stats:
             if src is img:
@@ -397,8 +433,11 @@ class PhotometricMatcher:
         """
         if not self.enabled or reference is img:
             return img
-        for ref, src, out in self._mapped:
+        for k, (ref, src, out) in enumerate(self._mapped):
             if ref is reference and src is img:
+                if not isinstance(out, np.ndarray):  # started by ``prefetch``
+                    out = out.result()
+                    self._mapped[k] = (ref, src, out)
                 return out
         fit = None
         seen_img, seen_ref = self._observed(img), self._observed(reference)

@@ -392,6 +392,11 @@ class StereoTracker:
         if pred is not None:
             self._photo.observe((prev_left, left, right, prev_right),
                                 (f.left_raw, pred[0], pred[1], f.right_raw))
+            if self.workers.overlaps:
+                # The stereo and bi-circular passes' maps are known now: the helper applies
+                # them while the temporal passes run.
+                self._photo.prefetch(((left, right), (right, prev_right)),
+                                     self.workers.submit_local)
         spent = clock() - t_photo
         ms['photometric'] += spent * 1e3
         t += spent
