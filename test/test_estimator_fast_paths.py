@@ -107,6 +107,55 @@ def test_sigma_point_update_matches_the_reference(spread, alpha):
         np.testing.assert_allclose(plain.mean, x, rtol=1e-10, atol=1e-11)
 
 
+def test_an_update_can_start_from_the_linearisation_of_another():
+    # The estimator's robust rounds: the same prior and measurements, other variances.
+    rng = np.random.default_rng(5)
+    _, model = kitti_model(rng)
+    y = np.array([0.3, -0.1, 10.0, 0.02, -0.05, 0.01])
+    z = (model.predict(y) + rng.normal(0, 0.5, (len(model.X), 4))).reshape(1, -1)
+    var = np.full(z.shape, 0.5)
+    reweighted = var / rng.uniform(0.2, 1.0, z.shape)
+    mean = (y + [0.5, 0, -1.0, 0, 0.01, 0])[None]
+    cov = np.diag([4.0] * 3 + [0.01] * 3)
+    h = BatchedMeasurement(model, index=np.arange(len(model.X))[None])
+    tight = {'filter.threshold_velocity': 1e-6, 'filter.threshold_angular_deg': 1e-6}
+    filt = make_filter(Config().replace(**tight).filter)
+    first = filt.update(mean, cov, h, z, var)
+    cold = filt.update(mean, cov, h, z, reweighted)
+    warm = filt.update(mean, cov, h, z, reweighted, start=first.linearization)
+    assert warm.converged[0] and 2 <= warm.iterations[0] < cold.iterations[0]
+    np.testing.assert_allclose(warm.mean, cold.mean, atol=1e-6)
+    np.testing.assert_allclose(warm.cov, cold.cov, rtol=1e-6)
+    assert np.abs(warm.mean - first.mean).max() > 1e-3  # the weights moved the estimate
+    # One step at the start's linearisation: the information-form update with its H and z_bar.
+    lin = first.linearization
+    step = filt.update(mean, cov, h, z, reweighted, start=lin, max_iterations=1)
+    order = h.measurement_order()
+    r_inv = 1.0 / reweighted[0, order]
+    lam = np.linalg.inv(cov) + (lin.Ht * r_inv) @ lin.Ht.T
+    resid = z[0, order] - lin.z_bar - (mean[0] - lin.x) @ lin.Ht
+    expected = mean[0] + np.linalg.solve(lam, (lin.Ht * r_inv) @ resid)
+    np.testing.assert_allclose(step.mean[0], expected, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(step.cov[0], np.linalg.inv(lam), rtol=1e-9)
+    assert step.iterations[0] == 1 and np.abs(step.mean - cold.mean).max() < 1e-3
+    # A start from the same problem's own last linearisation still takes a fresh one.
+    again = filt.update(mean, cov, h, z, var, start=first.linearization)
+    assert again.iterations[0] == 2
+    np.testing.assert_allclose(again.mean, first.mean, atol=1e-6)
+    # The UKF linearises once, at the prior: a start is that same linearisation.
+    ukf = make_filter(Config().replace(**{'filter.type': 'ukf'}).filter)
+    start = ukf.update(mean, cov, h, z, var).linearization
+    np.testing.assert_array_equal(ukf.update(mean, cov, h, z, reweighted, start=start).mean,
+                                  ukf.update(mean, cov, h, z, reweighted).mean)
+    # The EKF and IEKF start at the prior whatever they are given.
+    for kind in ('ekf', 'iekf'):
+        point = make_filter(Config().replace(**{'filter.type': kind}).filter)
+        assert point.update(mean, cov, h, z, var).linearization is None
+        np.testing.assert_array_equal(
+            point.update(mean, cov, h, z, reweighted, start=first.linearization).mean,
+            point.update(mean, cov, h, z, reweighted).mean)
+
+
 def test_cameras_and_predictions_match_the_projection_matrices():
     rng = np.random.default_rng(4)
     calib, model = kitti_model(rng)

@@ -416,8 +416,11 @@ class MotionEstimator:
         computes every inlier's reprojection error ``e`` (pixels, scaled as RANSAC's) under the
         latest estimate, ``sigma`` from them (:func:`residual_sigma`, as the adaptive gate), and
         updates again from the prior with each inlier's variances divided by its weight
-        ``1 / (1 + (e / (robust_scale_sigmas * sigma))^2)``. Returns the mean (6,), covariance
-        (6, 6) and iterations of the last update.
+        ``1 / (1 + (e / (robust_scale_sigmas * sigma))^2)``. A round's first step reuses the
+        last linearisation of the round before (same prior, same measurements: only the weights
+        differ), and an iterated filter goes on from there until it converges, rather than
+        linearising at the prior again. Returns the mean (6,), covariance (6, 6) and iterations
+        of the last update.
         """
         fcfg = self.config.filter
         idx = np.flatnonzero(inl)
@@ -432,7 +435,8 @@ class MotionEstimator:
             sigma = max(residual_sigma(err), MIN_ROBUST_SIGMA_PX)
             weight = 1.0 / (1.0 + (err / (fcfg.robust_scale_sigmas * sigma)) ** 2)
             out = self.filter.update(prior_mean[None], prior_cov, h, z_in,
-                                     (var / weight[:, None]).reshape(1, -1))
+                                     (var / weight[:, None]).reshape(1, -1),
+                                     start=out.linearization)
         return out.mean[0], out.cov[0], int(out.iterations[0])
 
     def _count_outliers(self, corr: Correspondences, watched: np.ndarray,

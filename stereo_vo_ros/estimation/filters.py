@@ -47,7 +47,9 @@ called directly, and a batch of problems keeps the converged ones in the batch (
 any more) instead of regrouping it. A measurement function can offer ``sigma_linearize`` and
 ``measurement_order`` (see :class:`~.ransac.BatchedMeasurement`): the first iteration of every
 problem with the frame's prior uses the same sigma points, whose predictions it computes once
-for all problems.
+for all problems. One problem's update can take its first step from the last linearisation of
+another update of the same prior and measurements (``start``, a :class:`Linearization`), as the
+estimator's robust reweighting rounds do.
 """
 
 from __future__ import annotations
@@ -86,6 +88,30 @@ class FilterOutput:
     cov: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    linearization: 'Linearization | None' = None
+
+
+@dataclass
+class Linearization:
+    """
+    The last linearisation of a one-problem sigma-point update (see ``_BaseFilter.update``).
+
+    Another update of the same prior and the same measurements, with other noise variances
+    (the robust reweighting rounds), starts from it instead of from the prior.
+
+    Attributes
+    ----------
+    x : (6,) state it was taken at (m/s, rad/s).
+    z_bar : (M,) sigma-point mean of h at ``x``, in the measurement function's order.
+    Ht : (6, M) transposed regression Jacobian; zero columns where h or z was not finite.
+    valid : (M,) bool where the measurement was used, or None for all.
+
+    """
+
+    x: np.ndarray
+    z_bar: np.ndarray
+    Ht: np.ndarray
+    valid: np.ndarray | None
 
 
 class Filter(Protocol):
@@ -95,7 +121,7 @@ class Filter(Protocol):
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
                noise_var: float | np.ndarray, max_iterations: int | None = None,
-               need_cov: bool = True) -> FilterOutput:
+               need_cov: bool = True, start: Linearization | None = None) -> FilterOutput:
         """Update B priors ``(mean (B,6), cov (B,6,6))`` with measurements ``z (B,M)``."""
 
 
@@ -300,7 +326,7 @@ class _BaseFilter:
 
     def update(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
                noise_var: float | np.ndarray, max_iterations: int | None = None,
-               need_cov: bool = True) -> FilterOutput:
+               need_cov: bool = True, start: Linearization | None = None) -> FilterOutput:
         """
         Update B priors with measurements; see the module docstring for the equations.
 
@@ -324,10 +350,17 @@ class _BaseFilter:
         need_cov : bool
             False: the posterior covariance is not computed (``cov`` is None), e.g. for RANSAC
             hypotheses.
+        start : Linearization, optional
+            ``linearization`` of an earlier update of this prior with these measurements and
+            other noise variances. The sigma-point filters solving one problem take their first
+            step with it instead of linearising at the prior; an iterated filter then goes on
+            linearising until it converges, and does not stop on that first step. Where it
+            does not apply (several problems, the EKF and IEKF) the update starts at the prior.
 
         Returns
         -------
-        FilterOutput
+        FilterOutput; for one problem of a sigma-point filter its ``linearization`` is the last
+        one taken.
 
         """
         mean = np.asarray(mean, np.float64)
@@ -338,7 +371,7 @@ class _BaseFilter:
             r_inv = np.broadcast_to(r_inv, z.shape)
         max_it = (max_iterations or self.cfg.max_iterations) if self.iterated else 1
         if self.sigma:
-            return self._update_sigma(mean, cov, h, z, r_inv, max_it, need_cov)
+            return self._update_sigma(mean, cov, h, z, r_inv, max_it, need_cov, start)
         return self._update_point(mean, cov, h, z, r_inv, max_it)
 
     def _update_point(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
@@ -393,7 +426,8 @@ class _BaseFilter:
         return info_prior, L, L_invT
 
     def _update_sigma(self, mean: np.ndarray, cov: np.ndarray, h: MeasurementFn, z: np.ndarray,
-                      r_inv: np.ndarray, max_it: int, need_cov: bool) -> FilterOutput:
+                      r_inv: np.ndarray, max_it: int, need_cov: bool,
+                      start: Linearization | None = None) -> FilterOutput:
         """
         ISPKF / UKF (see the module docstring).
 
@@ -412,7 +446,7 @@ class _BaseFilter:
             z, r_inv = z[:, order], r_inv[:, order]
         if B == 1 and cov.ndim == 2:
             return self._update_sigma_one(mean, h, z, r_inv, max_it, need_cov, scale,
-                                          info_prior, L, L_invT, linearize)
+                                          info_prior, L, L_invT, linearize, start)
         z_ok = np.isfinite(z)
         all_z_ok = bool(z_ok.all())
         # Every sigma point has a non-zero weight in z_bar: a non-finite D shows in z_bar too.
@@ -487,7 +521,8 @@ class _BaseFilter:
     def _update_sigma_one(self, mean: np.ndarray, h: MeasurementFn, z: np.ndarray,
                           r_inv: np.ndarray, max_it: int, need_cov: bool, scale: float,
                           info_prior: np.ndarray, L: np.ndarray, L_invT: np.ndarray,
-                          linearize: Callable | None) -> FilterOutput:
+                          linearize: Callable | None, start: Linearization | None
+                          ) -> FilterOutput:
         """:meth:`_update_sigma` for one problem (B = 1, one prior), on 2-D arrays."""
         x0 = mean[0]
         z, r_inv = z[0], r_inv[0]
@@ -498,21 +533,26 @@ class _BaseFilter:
         converged = False
         it = 0
         lam = info_prior
+        lin = start
         for it in range(max_it):
-            if linearize is not None:
-                z_bar, D = linearize(x[None], L, self.w0, it == 0)
-            else:
-                z_bar, D = sigma_moments(h(sigma_points(x[None], L, self.w0)), self.w0)
-            z_bar, D = z_bar[0], D[0]  # (M,), (6, M)
-            resid = z - z_bar
-            total = resid.sum() if mean_sees_all else resid.sum() + D.sum()
-            if not (all_z_ok and np.isfinite(total)):
-                valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=0)
-                resid = np.where(valid, resid, 0.0)
-                D = np.where(valid, D, 0.0)
-            Ht = L_invT @ D  # (6, M)
-            if it > 0:
-                resid -= (x0 - x) @ Ht
+            if lin is None:
+                if linearize is not None:
+                    z_bar, D = linearize(x[None], L, self.w0, it == 0)
+                else:
+                    z_bar, D = sigma_moments(h(sigma_points(x[None], L, self.w0)), self.w0)
+                z_bar, D = z_bar[0], D[0]  # (M,), (6, M)
+                valid = None
+                if not (all_z_ok and np.isfinite(z_bar.sum() if mean_sees_all else
+                                                 z_bar.sum() + D.sum())):
+                    valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=0)
+                    D = np.where(valid, D, 0.0)
+                lin = Linearization(x, z_bar, L_invT @ D, valid)  # Ht (6, M)
+            resid = z - lin.z_bar
+            if lin.valid is not None:
+                resid = np.where(lin.valid, resid, 0.0)
+            Ht = lin.Ht
+            if lin.x is not x0:  # linearised about x_i: z_bar_i + H_i (x_prior - x_i)
+                resid -= (x0 - lin.x) @ Ht
             HtR = Ht * r_inv
             lam = info_prior + HtR @ Ht.T
             rhs = HtR @ resid
@@ -530,8 +570,9 @@ class _BaseFilter:
                 if info > 0:
                     raise np.linalg.LinAlgError('Singular matrix')
             x_new = x0 + dx
-            converged = bool((np.abs(x_new - x) < self.threshold).all())
-            x = x_new
+            # A step from another update's linearisation does not end an iterated one.
+            converged = lin is not start and bool((np.abs(x_new - x) < self.threshold).all())
+            last, lin, x = lin, None, x_new
             if converged:
                 break
         cov_post = None
@@ -539,7 +580,7 @@ class _BaseFilter:
             cov_post = np.linalg.inv(lam)
             cov_post = (0.5 * (cov_post + cov_post.T))[None]
         return FilterOutput(x[None], cov_post, np.array([it + 1]),
-                            np.array([converged or not self.iterated]))
+                            np.array([converged or not self.iterated]), last)
 
 
 def _all_same(a: np.ndarray) -> bool:
