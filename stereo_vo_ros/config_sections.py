@@ -288,7 +288,7 @@ class PipelineConfig:
         'replenishment of features (detection and stereo matching of new corners) runs on '
         'the worker (see worker) while the motion is estimated, the aperture checks of the '
         'tracked features and the brightness maps of later passes run on a helper thread '
-        'next to their KLT pass, and OpenCV spreads '
+        'next to the temporal KLT passes, and OpenCV spreads '
         "KLT points over threads - 1 threads (OpenCV's thread count is per process). Results "
         'do not depend on the number. 0: the cores, 1 to 4.', 0, 64)
     worker: str = _f(

@@ -138,6 +138,22 @@ def test_an_update_can_start_from_the_linearisation_of_another():
     np.testing.assert_allclose(step.mean[0], expected, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(step.cov[0], np.linalg.inv(lam), rtol=1e-9)
     assert step.iterations[0] == 1 and np.abs(step.mean - cold.mean).max() < 1e-3
+    # A start taken on other measurements is not used: another count, or one now missing.
+    sub = BatchedMeasurement(model, index=np.arange(10, len(model.X))[None])
+    z_sub, var_sub = z[:, 40:], reweighted[:, 40:]
+    np.testing.assert_array_equal(
+        filt.update(mean, cov, sub, z_sub, var_sub, start=first.linearization).mean,
+        filt.update(mean, cov, sub, z_sub, var_sub).mean)
+    gap = z.copy()
+    gap[0, 5] = np.nan
+    np.testing.assert_array_equal(
+        filt.update(mean, cov, h, gap, reweighted, start=first.linearization).mean,
+        filt.update(mean, cov, h, gap, reweighted).mean)
+    first_gap = filt.update(mean, cov, h, gap, var)
+    assert first_gap.linearization.valid is not None
+    np.testing.assert_allclose(
+        filt.update(mean, cov, h, gap, reweighted, start=first_gap.linearization).mean,
+        filt.update(mean, cov, h, gap, reweighted).mean, atol=1e-6)
     # A start from the same problem's own last linearisation still takes a fresh one.
     again = filt.update(mean, cov, h, z, var, start=first.linearization)
     assert again.iterations[0] == 2

@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
+from pathlib import Path
 import pickle
 import resource
 import signal
@@ -121,16 +122,23 @@ def test_lost_worker_process_falls_back_to_the_caller(caplog):
 
 @needs_process
 def test_hung_worker_process_is_stopped_and_the_caller_goes_on(caplog, monkeypatch):
-    monkeypatch.setattr(parallel, 'RESULT_TIMEOUT_S', 0.5)
+    # The first job may wait for the start-up, far longer than for a job once running.
+    monkeypatch.setattr(parallel, 'RESULT_TIMEOUT_S', 0.001)
     workers = Workers(2, set_opencv=False)
     try:
-        workers.wait_ready()
+        assert workers.submit(os.getpid).result() != os.getpid()
+        monkeypatch.setattr(parallel, 'RESULT_TIMEOUT_S', 0.5)
+        image = np.ones((376, 1241), np.uint8)  # through shared memory
+        assert workers.submit(np.sum, image).result() == image.size
+        block = Path(parallel.SHM_DIR) / workers._process._shm.name
+        assert block.exists()
         proc = workers._process._proc
         os.kill(proc.pid, signal.SIGSTOP)  # alive, but it never answers
         with caplog.at_level(logging.WARNING, logger='stereo_vo_ros.parallel'):
             assert workers.submit(np.add, 2, 3).result() == 5
         assert 'did not answer within 0.5 s' in caplog.text
         assert proc.poll() == -signal.SIGKILL  # killed and reaped
+        assert not block.exists()  # its shared block freed
         assert workers.submit(os.getpid).result() == os.getpid()
     finally:
         workers.close()

@@ -247,8 +247,8 @@ def test_bag_replay_into_node_process_with_sim_time_and_reset(sequence, bag, har
         second = harness.odom[len(first):]
         # Each transform follows its odometry on /tf: wait for the last one before stopping.
         last = _stamp_ns(harness.odom[-1])
-        harness.wait_for(lambda: any(_stamp_ns(t) == last for m in list(tf_messages)
-                                     for t in m.transforms), 10.0)
+        assert harness.wait_for(lambda: any(_stamp_ns(t) == last for m in list(tf_messages)
+                                            for t in m.transforms), 10.0), 'no /tf for the end'
     assert proc['returncode'] == 0, proc['output']
     # Reliable QoS and a paced replay: every pair becomes odometry.
     assert (len(first), len(second)) == (SPLIT, N_FRAMES - SPLIT), proc['output']

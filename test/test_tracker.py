@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+import threading
 
 import cv2
 import numpy as np
@@ -20,6 +21,7 @@ from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfi
 from stereo_vo_ros.errors import ConfigError, ImageError
 from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.parallel import inline, Workers
+from stereo_vo_ros.tracking import photometric
 from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
 from stereo_vo_ros.tracking.detection import detect_corners
 from stereo_vo_ros.tracking.klt_checks import (aperture_checks, bicircular_error, CheckSet,
@@ -971,32 +973,44 @@ def test_independent_exposure_jumps_of_the_cameras_keep_tracking(vignetting, use
     assert counts['uncompensated'][1] < 0.8 * counts['exposed'][1]
 
 
-def test_brightness_maps_made_ahead_on_a_helper_change_nothing():
+def test_brightness_maps_made_ahead_on_a_helper_change_nothing(monkeypatch):
     """With a helper the stereo and bi-circular passes' images are mapped ahead: same output."""
     calib = rectified_calib()
     delta = (M2[0] - M1[0], M2[1] - M1[1])
-    changed = [exposed(img, g, o) for img, (g, o) in zip([*pair(M1), *pair(M2)], EXPOSURES)]
-    helper = Workers(2, set_opencv=False, kind='thread')
-    submitted = []
+    # Every image of the two pairs differs from the others in gain: all three maps apply.
+    exposures = ((1.0, 0.0), (1.25, -4.0), (0.75, 5.0), (0.95, 3.0))
+    changed = [exposed(img, g, o) for img, (g, o) in zip([*pair(M1), *pair(M2)], exposures)]
+    maps = []  # (made in the caller's thread, changed the image)
+    real = photometric.apply_transfer
 
-    def spy(fn, *args):
-        submitted.append(fn.__name__)
-        return Workers.submit_local(helper, fn, *args)
-    helper.submit_local = spy
+    def recorded(img, *args):
+        out = real(img, *args)
+        maps.append((threading.current_thread() is threading.main_thread(), out is not img))
+        return out
+    monkeypatch.setattr(photometric, 'apply_transfer', recorded)
+    helper = Workers(2, set_opencv=False, kind='thread')
+    outs, made = [], []
     try:
-        outs = []
         for workers in (inline(), helper):
             tracker = StereoTracker(config(), BucketingConfig(), workers)
             tracker.track(changed[0], changed[1], calib)
+            maps.clear()
             outs.append(tracker.track(changed[2], changed[3], calib, shift_prior(delta)))
+            made.append(sorted(maps))
     finally:
         helper.close()
-    assert submitted.count('apply_transfer') == 2  # right to left, previous right to right
-    for x, y in zip(dataclasses.astuple(outs[0].correspondences),
-                    dataclasses.astuple(outs[1].correspondences)):
+    # Alone: temporal, stereo and bi-circular maps in the caller. With the helper: the temporal
+    # one in the caller, the two others on the helper, each made once.
+    assert made[0] == [(True, True)] * 3
+    assert made[1] == [(False, True), (False, True), (True, True)]
+    a, b = outs
+    for x, y in zip(dataclasses.astuple(a.correspondences) + dataclasses.astuple(a.raw),
+                    dataclasses.astuple(b.correspondences) + dataclasses.astuple(b.raw)):
         np.testing.assert_array_equal(x, y)
-    assert outs[0].stats.failed == outs[1].stats.failed
-    assert len(outs[0].correspondences) > 100
+    for key in ('features_left_raw', 'features_right_raw', 'feature_ids', 'feature_ages'):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+    assert a.stats.failed == b.stats.failed
+    assert len(a.correspondences) > 100
 
 
 def test_photometric_map_is_not_applied_to_matching_images():

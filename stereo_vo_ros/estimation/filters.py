@@ -81,6 +81,8 @@ class FilterOutput:
     cov : (B, 6, 6) posterior covariance (None when the update was asked not to compute it).
     iterations : (B,) int iterations used.
     converged : (B,) bool True where the termination threshold was met.
+    linearization : the last linearisation of a one-problem sigma-point update (else None),
+        for another update to ``start`` from.
 
     """
 
@@ -102,8 +104,9 @@ class Linearization:
     Attributes
     ----------
     x : (6,) state it was taken at (m/s, rad/s).
-    z_bar : (M,) sigma-point mean of h at ``x``, in the measurement function's order.
-    Ht : (6, M) transposed regression Jacobian; zero columns where h or z was not finite.
+    z_bar : (M,) sigma-point mean of h at ``x`` (pixels), in the measurement function's order.
+    Ht : (6, M) transposed regression Jacobian (pixels per m/s and per rad/s); zero columns
+        where h or z was not finite.
     valid : (M,) bool where the measurement was used, or None for all.
 
     """
@@ -355,7 +358,8 @@ class _BaseFilter:
             other noise variances. The sigma-point filters solving one problem take their first
             step with it instead of linearising at the prior; an iterated filter then goes on
             linearising until it converges, and does not stop on that first step. Where it
-            does not apply (several problems, the EKF and IEKF) the update starts at the prior.
+            does not apply (several problems, the EKF and IEKF, another number of measurements
+            or one it used that is now not finite) the update starts at the prior.
 
         Returns
         -------
@@ -533,6 +537,9 @@ class _BaseFilter:
         converged = False
         it = 0
         lam = info_prior
+        if start is not None and (start.z_bar.shape != z.shape or not np.all(
+                z_ok if start.valid is None else z_ok | ~start.valid)):
+            start = None  # not taken on these measurements: start at the prior
         lin = start
         for it in range(max_it):
             if lin is None:
@@ -546,12 +553,12 @@ class _BaseFilter:
                                                  z_bar.sum() + D.sum())):
                     valid = z_ok & np.isfinite(z_bar) & np.isfinite(D).all(axis=0)
                     D = np.where(valid, D, 0.0)
-                lin = Linearization(x, z_bar, L_invT @ D, valid)  # Ht (6, M)
+                lin = Linearization(x.copy(), z_bar, L_invT @ D, valid)  # Ht (6, M)
             resid = z - lin.z_bar
             if lin.valid is not None:
                 resid = np.where(lin.valid, resid, 0.0)
             Ht = lin.Ht
-            if lin.x is not x0:  # linearised about x_i: z_bar_i + H_i (x_prior - x_i)
+            if it > 0 or lin is start:  # linearised about x_i: z_bar_i + H_i (x_prior - x_i)
                 resid -= (x0 - lin.x) @ Ht
             HtR = Ht * r_inv
             lam = info_prior + HtR @ Ht.T

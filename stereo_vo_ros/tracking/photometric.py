@@ -429,6 +429,8 @@ class PhotometricMatcher:
         -------
         np.ndarray
             (H, W) uint8: ``img`` itself when disabled or already matching, else a new image.
+            When ``prefetch`` started this pair's map, its result (waited for; its error, if
+            any, raised here).
 
         """
         if not self.enabled or reference is img:

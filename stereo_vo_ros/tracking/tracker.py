@@ -395,8 +395,9 @@ class StereoTracker:
             if self.workers.overlaps:
                 # The stereo and bi-circular passes' maps are known now: the helper applies
                 # them while the temporal passes run.
-                self._photo.prefetch(((left, right), (right, prev_right)),
-                                     self.workers.submit_local)
+                later = ((left, right), (right, prev_right)) if checks.bicircular else \
+                    ((left, right),)
+                self._photo.prefetch(later, self.workers.submit_local)
         spent = clock() - t_photo
         ms['photometric'] += spent * 1e3
         t += spent
