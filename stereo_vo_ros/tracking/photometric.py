@@ -382,17 +382,28 @@ class PhotometricMatcher:
         if not self.enabled:
             return
         for reference, img in pairs:
-            if reference is img or any(ref is reference and src is img
-                                       for ref, src, _ in self._mapped):
+            if reference is img or self._cached(reference, img) is not None:
                 continue
-            seen_img, seen_ref = self._observed(img), self._observed(reference)
-            if seen_img is None or seen_ref is None:
-                continue
-            fit = transfer_from_stats(*seen_img, *seen_ref)
+            fit = self._observed_fit(reference, img)
             if fit is None:
                 continue
             self.last = fit
             self._mapped.append((reference, img, submit(apply_transfer, img, *fit)))
+
+    def _cached(self, reference: np.ndarray, img: np.ndarray) -> int | None:
+        """Return the index of the pair in ``_mapped`` (by identity), or None."""
+        for k, (ref, src, _) in enumerate(self._mapped):
+            if ref is reference and src is img:
+                return k
+        return None
+
+    def _observed_fit(self, reference: np.ndarray, img: np.ndarray
+                      ) -> tuple[float, float] | None:
+        """Return the map fitted to the statistics of ``observe`` (None without them or a fit)."""
+        seen_img, seen_ref = self._observed(img), self._observed(reference)
+        if seen_img is None or seen_ref is None:
+            return None
+        return transfer_from_stats(*seen_img, *seen_ref)
 
     def _observed(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         for src, stats in self._stats:
@@ -435,16 +446,14 @@ class PhotometricMatcher:
         """
         if not self.enabled or reference is img:
             return img
-        for k, (ref, src, out) in enumerate(self._mapped):
-            if ref is reference and src is img:
-                if not isinstance(out, np.ndarray):  # started by ``prefetch``
-                    out = out.result()
-                    self._mapped[k] = (ref, src, out)
-                return out
-        fit = None
-        seen_img, seen_ref = self._observed(img), self._observed(reference)
-        if seen_img is not None and seen_ref is not None:
-            fit = transfer_from_stats(*seen_img, *seen_ref)
+        k = self._cached(reference, img)
+        if k is not None:
+            out = self._mapped[k][2]
+            if not isinstance(out, np.ndarray):  # started by ``prefetch``
+                out = out.result()
+                self._mapped[k] = (reference, img, out)
+            return out
+        fit = self._observed_fit(reference, img)
         if fit is None and pts_reference is not None and pts_img is not None:
             fit = window_transfer(img, pts_img, reference, pts_reference)
         if fit is None:
