@@ -119,3 +119,36 @@ def test_failures_keep_the_start_and_inputs_are_not_modified():
     assert not ok.all()
     out, ok = refine_affine(img0, img0, np.zeros((0, 2)), np.zeros((0, 2)))
     assert out.shape == (0, 2) and ok.shape == (0,)
+
+
+def test_each_point_is_refined_on_its_own_for_any_image_type():
+    """The tracker refines more matches than it keeps, and passes uint8 images: both exact."""
+    M, t = np.array([[1.05, 0.02], [-0.01, 1.08]]), np.array([2.2, 1.4])
+    img0, img1 = warped(np.eye(2), np.zeros(2)), warped(M, t)
+    pts = grid_points()
+    start = truth(M, t, pts) + 0.4
+    refined, ok = refine_affine(img0, img1, pts, start, win_size_px=21, step_px=2)
+    assert ok.all()
+    some = np.array([3, 17, 18, 30])
+    sub, sub_ok = refine_affine(img0, img1, pts[some], start[some], win_size_px=21, step_px=2)
+    np.testing.assert_array_equal(sub, refined[some])
+    as_float, _ = refine_affine(img0.astype(np.float32), img1.astype(np.float64), pts, start,
+                                win_size_px=21, step_px=2)
+    np.testing.assert_array_equal(as_float, refined)
+
+
+def test_points_at_the_border_and_non_finite_inputs_do_not_break_it():
+    """Windows past the image edge sample the replicated border; NaN points are refused."""
+    img0 = warped(np.eye(2), np.zeros(2))
+    img1 = warped(np.eye(2), np.array([1.5, 0.0]))
+    edge = np.array([[2.0, 2.0], [W - 1.5, H - 3.0], [W / 2, 0.0], [np.nan, 50.0],
+                     [80.0, 60.0]])
+    start = edge + [1.5, 0.0]
+    start[4] = [np.inf, 60.0]
+    refined, ok = refine_affine(img0, img1, edge, start, win_size_px=21)
+    assert not ok[3] and not ok[4]
+    np.testing.assert_array_equal(refined[~ok], start[~ok])
+    assert np.all(np.abs(refined[ok] - start[ok]) <= 2.0)
+    # Far outside the image: every sample is the border, nothing to fit, nothing crashes.
+    out, ok = refine_affine(img0, img1, np.array([[-5e3, 1e9]]), np.array([[1e12, -3e3]]))
+    assert not ok.any()

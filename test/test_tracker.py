@@ -21,7 +21,7 @@ from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfi
 from stereo_vo_ros.errors import ConfigError, ImageError
 from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.parallel import inline, Workers
-from stereo_vo_ros.tracking import photometric
+from stereo_vo_ros.tracking import photometric, tracker as tracker_module
 from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
 from stereo_vo_ros.tracking.detection import detect_corners
 from stereo_vo_ros.tracking.klt_checks import (aperture_checks, bicircular_error, CheckSet,
@@ -800,6 +800,41 @@ def test_aperture_checks_next_to_the_klt_pass_change_nothing():
         assert a.stats.failed['aperture'] + a.stats.failed['flow_aperture'] > 0
     finally:
         helper.close()
+
+
+def test_refinement_next_to_the_reverse_passes_changes_nothing(monkeypatch):
+    """With a helper the refinements run there, on every match before its check: same output."""
+    calib = rectified_calib()
+    calls = []  # (on the helper thread, matches refined)
+    real = tracker_module.refine_affine
+
+    def recorded(img_from, img_to, pts_from, *args, **kwargs):
+        calls.append((threading.current_thread() is not threading.main_thread(),
+                      len(pts_from)))
+        return real(img_from, img_to, pts_from, *args, **kwargs)
+    monkeypatch.setattr(tracker_module, 'refine_affine', recorded)
+    helper = Workers(2, set_opencv=False, kind='thread')
+    outs, seen = [], []
+    try:
+        for workers in (inline(), helper):
+            tracker = StereoTracker(config(), BucketingConfig(), workers)
+            tracker.track(*pair(M1), calib)
+            calls.clear()
+            outs.append(tracker.track(*pair(M2), calib))
+            seen.append(list(calls))
+    finally:
+        helper.close()
+    # Alone: the temporal and the stereo refinement in the caller, on the kept matches; with
+    # the helper: both there, on at least as many.
+    assert [on for on, _ in seen[0]] == [False, False]
+    assert [on for on, _ in seen[1]] == [True, True]
+    assert all(n_b >= n_a for (_, n_a), (_, n_b) in zip(*seen))
+    a, b = outs
+    for x, y in zip(dataclasses.astuple(a.correspondences) + dataclasses.astuple(a.raw),
+                    dataclasses.astuple(b.correspondences) + dataclasses.astuple(b.raw)):
+        np.testing.assert_array_equal(x, y)
+    assert a.stats.failed == b.stats.failed
+    assert len(a.correspondences) > 100
 
 
 def test_gradient_matrix_sobel_is_opencv_sobel():

@@ -137,9 +137,7 @@ class NewCorners:
 
 
 def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
-              job: ReplenishJob, clock: Callable[[], float] = time.perf_counter,
-              left_float: np.ndarray | None = None, right_float: np.ndarray | None = None
-              ) -> NewCorners:
+              job: ReplenishJob, clock: Callable[[], float] = time.perf_counter) -> NewCorners:
     """
     Detect corners where features are missing and match them into the right image.
 
@@ -154,9 +152,6 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
         Settings, calibration, tracked features and buckets to search.
     clock : callable
         Clock of the stage timings (seconds).
-    left_float, right_float : np.ndarray or None
-        ``left`` and ``right`` as float32, if the caller has them (the affine refinement
-        samples them); converted here when None.
 
     Returns
     -------
@@ -224,9 +219,7 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     if cfg.affine_refinement and ok.any():
         t = clock()
         horizontal = calib.kind == 'rectified'
-        left_f = left.astype(np.float32) if left_float is None else left_float
-        right_f = right.astype(np.float32) if right_float is None else right_float
-        refined, _ = refine_affine(left_f, right_f, pts[ok], pr[ok],
+        refined, _ = refine_affine(left, right, pts[ok], pr[ok],
                                    cfg.affine_stereo_win_size_px, cfg.affine_iterations,
                                    horizontal=horizontal, step_px=cfg.affine_step_px)
         pr[ok] = refined.astype(pr.dtype)

@@ -129,7 +129,6 @@ class StereoTracker:
         self._planned_kept: int | None = None
         self._calib: StereoCalibration | None = None
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
-        self._floats: list[tuple[np.ndarray, np.ndarray]] = []
         self._feats = FeatureSet.empty()
         self._bits = 8
         self._barren: np.ndarray | None = None  # (rows, cols) frames to skip each bucket
@@ -208,10 +207,6 @@ class StereoTracker:
         """
         self.join()
         t_start = CLOCK()
-        # float32 images of the refinement: only the previous pair's (owned by the tracker, never
-        # written) carry over; the caller may reuse its buffers for the next pair.
-        self._floats = [(src, conv) for src, conv in self._floats
-                        if self._prev is not None and any(src is p for p in self._prev)]
         left8, self._bits = as_grey_u8(left, 'left', self._bits)
         right8, self._bits = as_grey_u8(right, 'right', self._bits)
         if left8.shape != right8.shape:
@@ -270,11 +265,9 @@ class StereoTracker:
         if job is None:
             return None
         right_m, _ = self._matched(left, right, pts_left, pts_right, stats)
-        if self.workers.kind == 'process':  # converting there costs less than copying
+        if self.workers.kind == 'process':
             return self.workers.submit(replenish, left, right, right_m, job)
-        # In this process: the float images the refinement converted are reused.
-        return self.workers.submit(replenish, left, right, right_m, job, CLOCK,
-                                   self._float(left), self._float(right))
+        return self.workers.submit(replenish, left, right, right_m, job, CLOCK)
 
     def _replenish_survivors(self, left: np.ndarray, right: np.ndarray,
                              calib: StereoCalibration, stats: TrackerStats,
@@ -420,6 +413,8 @@ class StereoTracker:
         failed['temporal'] = int(np.count_nonzero(passed & ~tracked))
         alive = np.flatnonzero(passed & tracked)
 
+        refined = self._start_refinement(prev_left, left, f.left_raw[alive], cur_l[alive],
+                                         stats)
         t = clock()
         npts['temporal_bwd'] = len(alive)
         back, ok = lk_pass(left_m, prev_left, cur_l[alive], f.left_raw[alive],
@@ -428,7 +423,7 @@ class StereoTracker:
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
         alive = alive[ok]
-        cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
+        cur_l[alive] = refined(ok)
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
         #    disparity constraint (eq. 6) and range run before the reverse pass.
@@ -477,6 +472,7 @@ class StereoTracker:
         ms['stereo_fwd'] = (clock() - t) * 1e3
 
         # Left-right check (eq. 5); without the disparity constraint the range check follows.
+        refined = self._start_refinement(left, right, cur_l[alive], cur_r, stats, stereo=True)
         t = clock()
         npts['stereo_bwd'] = len(alive)
         back, ok = lk_pass(right_m, left, cur_r, cur_l[alive], REVERSE_PYRAMID_LEVELS, win,
@@ -499,7 +495,7 @@ class StereoTracker:
                 ideal_l[:, 0] - ideal_r[:, 0], self._planned_kept)
         klt_r = cur_r.astype(np.float64)
         if cfg.affine_refinement and len(alive):
-            cur_r = self._refine(left, right, cur_l[alive], cur_r, stats, stereo=True)
+            cur_r = refined(ok)
             ideal_r = calib.undistort_right(cur_r)
 
         ages = f.ages[alive] + 1
@@ -557,25 +553,39 @@ class StereoTracker:
         stats.timings_ms['photometric'] += spent * 1e3
         return out, spent
 
-    def _float(self, img: np.ndarray) -> np.ndarray:
-        """float32 copy of a uint8 image, converted once per frame (the refinement samples it)."""
-        for src, converted in self._floats:
-            if src is img:
-                return converted
-        converted = img.astype(np.float32)
-        self._floats = (self._floats + [(img, converted)])[-3:]
-        return converted
+    def _start_refinement(self, img_from: np.ndarray, img_to: np.ndarray,
+                          pts_from: np.ndarray, pts_to: np.ndarray, stats: TrackerStats,
+                          stereo: bool = False) -> Callable[[np.ndarray], np.ndarray]:
+        """
+        Start the affine refinement of matches (``_refine``) ahead of the check that selects them.
+
+        Returns a function of the rows the check kept ((N,) bool) that returns their positions
+        ``pts_to[kept]``, refined. With a helper thread it refines every match there, next to
+        the caller's reverse KLT pass (the refinement releases the GIL, as OpenCV does); each
+        point is refined on its own, so the kept ones come out as if refined alone. Without
+        one, only the kept matches are refined, when asked.
+        """
+        if not (self.workers.overlaps and self.cfg.affine_refinement and len(pts_from)):
+            return lambda kept: self._refine(img_from, img_to, pts_from[kept], pts_to[kept],
+                                             stats, stereo)
+        job = self.workers.submit_local(self._refine, img_from, img_to, pts_from, pts_to, stats,
+                                        stereo)
+        return lambda kept: job.result()[kept]
 
     def _refine(self, img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
                 pts_to: np.ndarray, stats: TrackerStats, stereo: bool = False) -> np.ndarray:
-        """Affine refinement of matches (raw pixels) when configured, timed as ``affine``."""
+        """
+        Affine refinement of matches (raw pixels) when configured, timed as ``affine``.
+
+        Runs on the helper thread too (``_start_refinement``): ``stats`` takes its time only.
+        """
         cfg = self.cfg
         if not cfg.affine_refinement or not len(pts_from):
             return pts_to
         t = CLOCK()
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
         win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
-        out, _ = refine_affine(self._float(img_from), self._float(img_to), pts_from, pts_to,
+        out, _ = refine_affine(img_from, img_to, pts_from, pts_to,
                                win, cfg.affine_iterations, horizontal=horizontal,
                                step_px=cfg.affine_step_px)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
