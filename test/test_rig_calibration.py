@@ -416,3 +416,10 @@ def test_row_coupling_predicts_the_slide_of_row_pinned_matches():
     assert np.mean(slide) < -0.15 and np.std(slide) > 0.05
     assert abs(np.mean(slide - predicted)) < 0.25 * abs(np.mean(slide))
     assert np.std(slide - predicted) < 0.5 * np.std(slide)
+    # uint8 images (the tracker's) and their float copies give the same; a point at the edge
+    # is measured on the nearest window inside the image.
+    img8 = np.clip(left, 0, 255).astype(np.uint8)
+    np.testing.assert_array_equal(row_coupling(img8, pts, 15, 2),
+                                  row_coupling(img8.astype(np.float32), pts, 15, 2))
+    edge = row_coupling(img8, np.array([[0.0, 0.0], [639.0, 239.0], [8.0, 8.0]]), 15, 2)
+    assert np.all(np.isfinite(edge)) and edge[0] == edge[2]

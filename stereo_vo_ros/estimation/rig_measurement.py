@@ -25,15 +25,17 @@ how the estimate is fused and applied) is in :mod:`.rig_calibration`, whose
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import cv2
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .camera import StereoCalibration
 from ..config import RigConfig
+from ..jit import cholesky, cholesky_solve, image_signatures, JIT, readonly
 from ..records import Correspondences
-from ..tracking.klt_checks import sampled_differences, window_patches
 
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
 PARAMETERS = ('roll_rad', 'pitch_rad', 'yaw_rad', 'focal_ratio', 'disparity_offset_px')
@@ -204,27 +206,75 @@ def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: in
 
     """
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    out = np.zeros(len(pts))
     if len(pts) == 0:
-        return np.zeros(0)
+        return out
     half = int(win_size_px) // 2
-    r = np.arange(-half - 1, half + 2)
     H, W = img.shape
     cx = np.clip(np.rint(pts[:, 0]).astype(np.intp), half + 1, W - half - 2)
     cy = np.clip(np.rint(pts[:, 1]).astype(np.intp), half + 1, H - half - 2)
-    patch = window_patches(np.asarray(img), np.stack([cx, cy], axis=1), half)
-    st = max(int(step_px), 1)
-    gx, gy = sampled_differences(patch.astype(np.float32), st)
-    x = r[1:-1][::st].astype(np.float32)
-    n, k = len(pts), gx.shape[1] * gx.shape[2]
-    sd = np.stack([gx * x[None, None, :], gx * x[None, :, None], gx], 1).reshape(n, 3, k)
-    sd = sd - sd.mean(axis=2, keepdims=True)
-    gy = gy.reshape(n, k)
-    gy = gy - gy.mean(axis=1, keepdims=True)
-    hess = (sd @ np.swapaxes(sd, 1, 2)).astype(np.float64)
-    hess += np.eye(3) * (1e-4 * np.trace(hess, axis1=1, axis2=2)[:, None, None] + 1e-6)
-    rhs = (sd @ gy[:, :, None])[:, :, 0].astype(np.float64)
-    out = np.linalg.solve(hess, rhs[:, :, None])[:, 2, 0]
-    return np.where(np.isfinite(out), out, 0.0)
+    img = np.asarray(img)
+    img = np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else
+                               img.astype(np.float32))
+    _row_couplings(img, cx, cy, half, max(int(step_px), 1), out)
+    return out
+
+
+@numba.njit(image_signatures(lambda img: numba.types.void(
+    img, readonly(numba.types.intp, 1), readonly(numba.types.intp, 1), numba.types.int64,
+    numba.types.int64, numba.types.Array(numba.types.float64, 1, 'C'))), **JIT)
+def _row_couplings(img, cx, cy, half, step, out):
+    """
+    ``row_coupling`` at integer centres inside the image by a window and a pixel, into ``out``.
+
+    Steepest-descent images of the horizontal refinement (x-scale, x-shear, shift: the x
+    gradient times x, y and 1), centred over the window, and the centred y gradient; the
+    coupling is the shift's coefficient of the least-squares fit of the latter by the former.
+    """
+    sd = np.empty((3, (2 * half + 1 + step - 1) // step * ((2 * half + 1 + step - 1) // step)))
+    gy = np.empty(sd.shape[1])
+    hess = np.empty((3, 3))
+    chol = np.zeros((3, 3))
+    rhs, tmp, sol = np.empty(3), np.empty(3), np.empty(3)
+    k_n = sd.shape[1]
+    for i in range(len(cx)):
+        k = 0
+        for dy in range(-half, half + 1, step):
+            y = cy[i] + dy
+            for dx in range(-half, half + 1, step):
+                x = cx[i] + dx
+                gx = 0.5 * (float(img[y, x + 1]) - float(img[y, x - 1]))
+                gy[k] = 0.5 * (float(img[y + 1, x]) - float(img[y - 1, x]))
+                sd[0, k], sd[1, k], sd[2, k] = gx * dx, gx * dy, gx
+                k += 1
+        for a in range(3):
+            m = 0.0
+            for k in range(k_n):
+                m += sd[a, k]
+            m /= k_n
+            for k in range(k_n):
+                sd[a, k] -= m
+        m = 0.0
+        for k in range(k_n):
+            m += gy[k]
+        m /= k_n
+        trace = 0.0
+        for a in range(3):
+            s = 0.0
+            for k in range(k_n):
+                s += sd[a, k] * (gy[k] - m)
+            rhs[a] = s
+            for b in range(a + 1):
+                s = 0.0
+                for k in range(k_n):
+                    s += sd[a, k] * sd[b, k]
+                hess[a, b] = s
+            trace += hess[a, a]
+        for a in range(3):
+            hess[a, a] += 1e-4 * trace + 1e-6
+        cholesky(hess, 3, chol)
+        cholesky_solve(chol, 3, rhs, tmp, sol)
+        out[i] = sol[2] if math.isfinite(sol[2]) else 0.0
 
 
 # -- one pair's measurement -----------------------------------------------------------------------

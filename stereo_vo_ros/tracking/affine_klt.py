@@ -37,6 +37,8 @@ import math
 import numba
 import numpy as np
 
+from ..jit import cholesky, cholesky_solve, image_signatures, JIT, readonly
+
 #: Largest accepted move of a point by the refinement (pixels).
 MAX_SHIFT_PX = 2.0
 #: Accepted range of the determinant of A (area ratio of the two windows).
@@ -48,14 +50,8 @@ DAMPING = 1e-3
 #: Largest accepted absolute entry of A.
 MAX_A = 2.0
 
-#: Compiled once per image type and cached on disk. Sums may be reordered (SIMD), which is
-#: deterministic for a given machine; no assumption that values are finite (``fastmath`` without
-#: ``nnan``/``ninf``), since non-finite results are how a diverged point is detected.
-_JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy',
-        'fastmath': {'reassoc', 'contract', 'nsz', 'arcp'}}
 
-
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _template(img, px, py, half, out):
     """
     Bilinear samples of ``img`` at ``(px + i, py + j)`` for i, j in [-half - 1, half + 1].
@@ -83,7 +79,7 @@ def _template(img, px, py, half, out):
                          + w10 * img[yb, xa] + w11 * img[yb, xb])
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _warped(img, cx, cy, a00, a01, a10, a11, xs, ys, out):
     """Bilinear samples of ``img`` at ``(cx, cy) + A (xs, ys)`` (finite; border replicated)."""
     h, w = img.shape
@@ -114,7 +110,12 @@ def _warped(img, cx, cy, a00, a01, a10, a11, xs, ys, out):
         out[k] = top + fy * (bottom - top)
 
 
-@numba.njit(**_JIT)
+_F8, _I8, _B1 = numba.types.float64, numba.types.int64, numba.types.boolean
+
+
+@numba.njit(image_signatures(lambda img: numba.types.void(
+    img, img, readonly(_F8, 2), readonly(_F8, 2), _I8, _I8, _I8, _B1, _F8,
+    numba.types.Array(_F8, 2, 'C'), numba.types.Array(_B1, 1, 'C'))), **JIT)
 def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizontal, max_shift,
                    out, ok):
     """
@@ -141,6 +142,7 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
     mean_sd = np.empty(n_par)
     dp = np.zeros(6)
     tmp = np.empty(n_par)
+    rhs = np.empty(n_par)
     for i in range(len(pts_from)):
         px, py = pts_from[i, 0], pts_from[i, 1]
         gx0, gy0 = pts_to[i, 0], pts_to[i, 1]
@@ -188,17 +190,9 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
                     s += sd[a, k] * sd[b, k]
                 hess[a, b] = s - k_n * mean_sd[a] * mean_sd[b]
             trace += hess[a, a]
-        # Cholesky factor (lower); not positive definite gives NaN, so the point fails.
         for a in range(n_par):
             hess[a, a] += DAMPING * trace + 1e-6
-            for b in range(a + 1):
-                s = hess[a, b]
-                for k in range(b):
-                    s -= chol[a, k] * chol[b, k]
-                if a == b:
-                    chol[a, a] = math.sqrt(s) if s > 0.0 else np.nan
-                else:
-                    chol[a, b] = s / chol[b, b]
+        cholesky(hess, n_par, chol)  # not positive definite: NaN, and the point fails
         a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0
         cx, cy = gx0, (py if horizontal else gy0)
         img_std = err2 = 0.0
@@ -221,18 +215,12 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
                 smp[k] = e
                 err2 += e * e
             err2 /= k_n
-            for a in range(n_par):  # solve H dp = sd . e with the Cholesky factor
+            for a in range(n_par):
                 s = 0.0
                 for k in range(k_n):
                     s += sd[a, k] * smp[k]
-                for b in range(a):
-                    s -= chol[a, b] * tmp[b]
-                tmp[a] = s / chol[a, a]
-            for a in range(n_par - 1, -1, -1):
-                s = tmp[a]
-                for b in range(a + 1, n_par):
-                    s -= chol[b, a] * dp[b]
-                dp[a] = s / chol[a, a]
+                rhs[a] = s
+            cholesky_solve(chol, n_par, rhs, tmp, dp)  # H dp = sd . e
             if horizontal:  # (dA00, dA01, dcx) -> (dA00, dA01, 0, 0, dcx, 0)
                 dp[4], dp[2] = dp[2], 0.0
             # Inverse composition: A <- A (I + dA)^-1, c <- c - A dc.

@@ -1,0 +1,71 @@
+"""
+Options and small linear algebra shared by the kernels compiled with Numba.
+
+The package's per-point loops that NumPy would run as many small array operations (the affine
+refinement, the rig refinement's row couplings) are compiled with ``numba.njit(**JIT)``. The
+kernels the pipeline calls are compiled as their module is imported, for the signatures of
+``image_signatures`` (compiling takes a few seconds once; later imports load the on-disk cache
+in ``__pycache__``), so no pair, and no job of the worker process, waits for the compiler.
+They release the GIL, so a helper thread runs them next to the caller.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+#: Compile options: cached on disk, GIL released, float division by zero gives inf/NaN as in
+#: NumPy. Sums may be reordered (SIMD), which is deterministic on a given machine; values are not
+#: assumed finite (no ``nnan``/``ninf``), since a non-finite result is how a kernel reports a
+#: point that failed.
+JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy',
+       'fastmath': {'reassoc', 'contract', 'nsz', 'arcp'}}
+
+
+#: The image types the kernels are compiled for (others are converted to float32).
+IMAGE_TYPES = (numba.types.uint8, numba.types.float32)
+
+
+def readonly(dtype, ndim: int):
+    """Return the Numba type of a C-contiguous array read by a kernel (writeable ones pass too)."""
+    return numba.types.Array(dtype, ndim, 'C', readonly=True)
+
+
+def image_signatures(make) -> list:
+    """Return ``make(image_type)`` for every type of ``IMAGE_TYPES`` (an eager ``njit`` list)."""
+    return [make(readonly(t, 2)) for t in IMAGE_TYPES]
+
+
+@numba.njit(**JIT)
+def cholesky(mat, n, out):
+    """
+    Write the lower Cholesky factor of ``mat[:n, :n]`` (symmetric; lower triangle read) to ``out``.
+
+    A matrix that is not positive definite gives NaN on the diagonal from there on.
+    """
+    for a in range(n):
+        for b in range(a + 1):
+            s = mat[a, b]
+            for k in range(b):
+                s -= out[a, k] * out[b, k]
+            if a == b:
+                out[a, a] = math.sqrt(s) if s > 0.0 else np.nan
+            else:
+                out[a, b] = s / out[b, b]
+
+
+@numba.njit(**JIT)
+def cholesky_solve(chol, n, rhs, tmp, out):
+    """Solve ``L L^T x = rhs`` for the factor ``chol`` (``cholesky``) into ``out[:n]``."""
+    for a in range(n):
+        s = rhs[a]
+        for b in range(a):
+            s -= chol[a, b] * tmp[b]
+        tmp[a] = s / chol[a, a]
+    for a in range(n - 1, -1, -1):
+        s = tmp[a]
+        for b in range(a + 1, n):
+            s -= chol[b, a] * out[b]
+        out[a] = s / chol[a, a]
