@@ -289,6 +289,7 @@ class StereoOdometry:
             prior = self._road_prior(frame, calib, dt)
             timings['road_search'] = (time.perf_counter() - t0) * 1e3
         track = self._track(frame, prior, timings)
+        road_images = self._start_road_images(calib)
         corr = track.correspondences
         t0 = time.perf_counter()
         if corr is None or len(corr) == 0:
@@ -334,7 +335,7 @@ class StereoOdometry:
                 status = TrackingStatus.LOST
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
         vehicle_fused = ok and self._vehicle_step(dt)
-        road_fused = self._road_step(frame, dt, ok and not calib_changed, timings)
+        road_fused = self._road_step(frame, dt, ok and not calib_changed, timings, road_images)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._rig_prev_left = self.tracker.previous_left()
         self._commit(stamp, calib, status)
@@ -386,10 +387,26 @@ class StereoOdometry:
                                           np.array([[vcfg.lateral_speed_std ** 2]]),
                                           vcfg.gate_chi2)
 
+    def _start_road_images(self, calib: StereoCalibration):
+        """
+        Start the road pyramids of the pair just tracked (``RoadAligner.prepare``).
+
+        With a helper thread they are built there, next to the motion estimate (OpenCV
+        filters, which release the GIL); the same images either way. Returns the pending
+        result (``.result()``), or None when the road is not aligned.
+        """
+        if not self.config.road.enabled or calib.kind != 'rectified':
+            return None
+        left, right = self.tracker.last_pair()
+        return self.workers.submit_local(self.road.prepare, left, right,
+                                         self.road.first_row(calib, self._road_plane))
+
     def _road_step(self, frame: StereoFrame, dt: float, measure: bool,
-                   timings: dict[str, float]) -> bool:
+                   timings: dict[str, float], images=None) -> bool:
         """
         Road alignment (``road``, :mod:`~stereo_vo_ros.road.road_alignment`; not in the papers).
+
+        ``images``: the pending pyramids of ``_start_road_images`` (built here when None).
 
         With ``measure`` (the features gave an estimate, same calibration) the road of the
         previous left image is aligned with the current one, starting from the filter's motion,
@@ -404,8 +421,9 @@ class StereoOdometry:
             return False
         t0 = time.perf_counter()
         prev_images, plane = self._road_images, self._road_plane
-        left, right = self.tracker.last_pair()  # this pair, as the tracker converted it
-        images = self.road.prepare(left, right, self.road.first_row(calib, plane))
+        if images is None:
+            images = self._start_road_images(calib)
+        images = images.result()  # this pair, as the tracker converted it
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
         fused = False
         if measure and prev_images is not None and plane is not None:

@@ -198,6 +198,30 @@ def test_results_with_a_worker_do_not_depend_on_its_kind_or_count(urban):
     assert np.linalg.norm(ends['temporal'] - ends['all']) < 0.005 * path
 
 
+def test_road_profile_does_not_depend_on_the_thread_count(urban, monkeypatch):
+    """The road pyramids are built on the helper thread next to the estimate: same poses."""
+    frames, _ = urban
+    built = []  # on the caller's thread
+    real = StereoOdometry._start_road_images
+
+    def recorded(self, calib):
+        out = real(self, calib)
+        built.append(threading.current_thread() is threading.main_thread()
+                     if isinstance(out, parallel._Done) else False)
+        return out
+    monkeypatch.setattr(StereoOdometry, '_start_road_images', recorded)
+    profile = {'road.enabled': True, 'vehicle.nonholonomic': True}
+    runs = {}
+    for threads in (1, 2):
+        built.clear()
+        runs[threads] = _run(frames[:12], **profile, **{'pipeline.threads': threads})[1]
+        assert len(built) == 12 and all(built) == (threads == 1)
+    assert sum(r.road_fused for r in runs[1]) >= 8
+    for a, b in zip(runs[1], runs[2]):
+        assert np.array_equal(a.T_world_cam, b.T_world_cam)
+        assert a.road_fused == b.road_fused
+
+
 @needs_process
 def test_pipeline_goes_on_identically_when_its_worker_process_dies(urban, caplog):
     """Killing the worker mid-run: a warning, the rest inline, the same poses as one thread."""
