@@ -2,19 +2,23 @@
 Options and small linear algebra shared by the kernels compiled with Numba.
 
 The package's per-point loops that NumPy would run as many small array operations (the affine
-refinement, the rig refinement's row couplings) are compiled with ``numba.njit(**JIT)``. The
-kernels the pipeline calls are compiled as their module is imported, for the signatures of
-``image_signatures`` (compiling takes a few seconds once; later imports load the on-disk cache
-in ``__pycache__``), so no pair, and no job of the worker process, waits for the compiler.
-They release the GIL, so a helper thread runs them next to the caller.
+refinement, the rig refinement's row couplings, the estimator's transfer to pixels) are compiled
+with ``kernel`` (``numba.njit`` with ``JIT``). The kernels the pipeline calls are compiled as
+their module is imported, for explicit signatures (compiling takes a few seconds once; later
+imports load the on-disk cache in ``__pycache__``), so no pair, and no job of the worker
+process, waits for the compiler. They release the GIL, so a helper thread runs them next to the
+caller.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numba
 import numpy as np
+
+LOG = logging.getLogger(__name__)
 
 #: Compile options: cached on disk, GIL released, float division by zero gives inf/NaN as in
 #: NumPy. Sums may be reordered (SIMD), which is deterministic on a given machine; values are not
@@ -22,6 +26,31 @@ import numpy as np
 #: point that failed.
 JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy',
        'fastmath': {'reassoc', 'contract', 'nsz', 'arcp'}}
+
+
+_UNCACHED = []  # kernels compiled without the on-disk cache (no writable place for it)
+
+
+def kernel(signatures=None):
+    """
+    Return ``numba.njit`` with ``JIT`` (eager when ``signatures`` are given) as a decorator.
+
+    Numba keeps its cache next to the module, else in the user's cache directory; with neither
+    writable (a read-only install run by a user without a writable home) the kernel is compiled
+    without the cache, at every start, and a warning says so once.
+    """
+    args = () if signatures is None else (signatures,)
+
+    def decorate(fn):
+        try:
+            return numba.njit(*args, **JIT)(fn)
+        except RuntimeError as exc:  # "cannot cache function ...: no locator available"
+            if not _UNCACHED:
+                LOG.warning('compiled kernels are not cached (%s): each start compiles them '
+                            'again, which takes a few seconds', exc)
+            _UNCACHED.append(fn.__qualname__)
+            return numba.njit(*args, **{**JIT, 'cache': False})(fn)
+    return decorate
 
 
 #: The image types the kernels are compiled for (others are converted to float32).
@@ -38,7 +67,7 @@ def image_signatures(make) -> list:
     return [make(readonly(t, 2)) for t in IMAGE_TYPES]
 
 
-@numba.njit(**JIT)
+@kernel()
 def cholesky(mat, n, out):
     """
     Write the lower Cholesky factor of ``mat[:n, :n]`` (symmetric; lower triangle read) to ``out``.
@@ -56,7 +85,7 @@ def cholesky(mat, n, out):
                 out[a, b] = s / out[b, b]
 
 
-@numba.njit(**JIT)
+@kernel()
 def cholesky_solve(chol, n, rhs, tmp, out):
     """Solve ``L L^T x = rhs`` for the factor ``chol`` (``cholesky``) into ``out[:n]``."""
     for a in range(n):

@@ -27,7 +27,7 @@ import numpy as np
 from .camera import StereoCalibration
 from .trifocal import (fundamental_from_projections, perpendicular_lines_t, tensor_basis,
                        transfer_basis_t)
-from ..jit import JIT, readonly
+from ..jit import kernel, readonly
 
 
 def rotation_zxy(theta_z: np.ndarray, phi_x: np.ndarray, psi_y: np.ndarray) -> np.ndarray:
@@ -382,10 +382,10 @@ class TransferModel:
         return uv.reshape((4,) + lead + (X.shape[-2],))
 
 
-@numba.njit(numba.types.void(readonly(numba.types.float64, 2), numba.types.float64,
-                             readonly(numba.types.float64, 2), readonly(numba.types.float64, 1),
-                             readonly(numba.types.float64, 3),
-                             numba.types.Array(numba.types.float64, 3, 'C')), **JIT)
+@kernel(numba.types.void(readonly(numba.types.float64, 2), numba.types.float64,
+                         readonly(numba.types.float64, 2), readonly(numba.types.float64, 1),
+                         readonly(numba.types.float64, 3),
+                         numba.types.Array(numba.types.float64, 3, 'C')))
 def _project(states, dt, W, o, XT, out):
     """
     ``TransferModel.predict_planes`` of states (6, S) and transposed transfer vectors (B, 4, N).

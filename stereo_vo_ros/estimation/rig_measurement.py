@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from .camera import StereoCalibration
 from ..config import RigConfig
-from ..jit import cholesky, cholesky_solve, image_signatures, JIT, readonly
+from ..jit import cholesky, cholesky_solve, image_signatures, kernel, readonly
 from ..records import Correspondences
 
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
@@ -220,9 +220,9 @@ def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: in
     return out
 
 
-@numba.njit(image_signatures(lambda img: numba.types.void(
+@kernel(image_signatures(lambda img: numba.types.void(
     img, readonly(numba.types.intp, 1), readonly(numba.types.intp, 1), numba.types.int64,
-    numba.types.int64, numba.types.Array(numba.types.float64, 1, 'C'))), **JIT)
+    numba.types.int64, numba.types.Array(numba.types.float64, 1, 'C'))))
 def _row_couplings(img, cx, cy, half, step, out):
     """
     ``row_coupling`` at integer centres inside the image by a window and a pixel, into ``out``.

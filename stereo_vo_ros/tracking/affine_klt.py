@@ -37,7 +37,7 @@ import math
 import numba
 import numpy as np
 
-from ..jit import cholesky, cholesky_solve, image_signatures, JIT, readonly
+from ..jit import cholesky, cholesky_solve, image_signatures, kernel, readonly
 
 #: Largest accepted move of a point by the refinement (pixels).
 MAX_SHIFT_PX = 2.0
@@ -51,7 +51,7 @@ DAMPING = 1e-3
 MAX_A = 2.0
 
 
-@numba.njit(**JIT)
+@kernel()
 def _template(img, px, py, half, out):
     """
     Bilinear samples of ``img`` at ``(px + i, py + j)`` for i, j in [-half - 1, half + 1].
@@ -79,7 +79,7 @@ def _template(img, px, py, half, out):
                          + w10 * img[yb, xa] + w11 * img[yb, xb])
 
 
-@numba.njit(**JIT)
+@kernel()
 def _warped(img, cx, cy, a00, a01, a10, a11, xs, ys, out):
     """Bilinear samples of ``img`` at ``(cx, cy) + A (xs, ys)`` (finite; border replicated)."""
     h, w = img.shape
@@ -113,9 +113,9 @@ def _warped(img, cx, cy, a00, a01, a10, a11, xs, ys, out):
 _F8, _I8, _B1 = numba.types.float64, numba.types.int64, numba.types.boolean
 
 
-@numba.njit(image_signatures(lambda img: numba.types.void(
+@kernel(image_signatures(lambda img: numba.types.void(
     img, img, readonly(_F8, 2), readonly(_F8, 2), _I8, _I8, _I8, _B1, _F8,
-    numba.types.Array(_F8, 2, 'C'), numba.types.Array(_B1, 1, 'C'))), **JIT)
+    numba.types.Array(_F8, 2, 'C'), numba.types.Array(_B1, 1, 'C'))))
 def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizontal, max_shift,
                    out, ok):
     """
