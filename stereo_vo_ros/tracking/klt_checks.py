@@ -27,11 +27,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from ..config import TRACKER_VARIANTS
 from ..errors import ConfigError
 from ..estimation.camera import StereoCalibration
+from ..jit import image_signatures, kernel, readonly
 
 #: Convergence threshold of one KLT iteration (pixels), as VINS-Fusion uses.
 KLT_EPSILON_PX = 0.01
@@ -163,58 +165,6 @@ def inside_image(pts: np.ndarray, size: tuple[int, int], border_px: float = BORD
                 & (pts[:, 1] <= h - 1 - border_px))
 
 
-def window_patches(img: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
-    """
-    Square windows of an image and a one-pixel border around integer centres.
-
-    Parameters
-    ----------
-    img : np.ndarray
-        (H, W) image.
-    centres : np.ndarray
-        (N, 2) int pixel positions (x, y) of the window centres.
-    half : int
-        Half the window side (pixels): windows are ``2 half + 1`` pixels, patches ``2 half + 3``.
-
-    Returns
-    -------
-    np.ndarray
-        (N, 2 half + 3, 2 half + 3) patches of ``img``'s dtype; pixels outside the image repeat
-        its border. Patches inside the image are rows of a sliding-window view (one small
-        copy); the others take their pixels one by one.
-
-    """
-    centres = np.asarray(centres, np.int64).reshape(-1, 2)
-    h, w = img.shape
-    r = half + 1
-    side = 2 * r + 1
-    inside = np.all((centres >= r) & (centres < np.array([w, h]) - r), axis=1)
-    patches = np.empty((len(centres), side, side), img.dtype)
-    if inside.any():
-        windows = np.lib.stride_tricks.sliding_window_view(img, (side, side))
-        patches[inside] = windows[centres[inside, 1] - r, centres[inside, 0] - r]
-    if not inside.all():
-        offs = np.arange(-r, r + 1)
-        c = centres[~inside]
-        ys = np.clip(c[:, 1, None] + offs, 0, h - 1)
-        xs = np.clip(c[:, 0, None] + offs, 0, w - 1)
-        patches[~inside] = img[ys[:, :, None], xs[:, None, :]]
-    return patches
-
-
-def sampled_differences(patches: np.ndarray, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """
-    Central differences (x, y) of patches with a one-pixel border, at every ``step``-th pixel.
-
-    ``patches`` (N, S, S) float; returns two (N, K, K) arrays of half the difference of the
-    neighbours, at rows and columns 1, 1 + step, ... of the patch (its border only feeds the
-    stencils), K = ceil((S - 2) / step).
-    """
-    gx = 0.5 * (patches[:, 1:-1:step, 2::step] - patches[:, 1:-1:step, :-2:step])
-    gy = 0.5 * (patches[:, 2::step, 1:-1:step] - patches[:, :-2:step, 1:-1:step])
-    return gx, gy
-
-
 def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: bool = False
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
@@ -242,31 +192,53 @@ def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: b
 
     """
     pts = np.asarray(pts, np.float64).reshape(-1, 2)
-    half = int(win_size_px) // 2
     ok = np.all(np.isfinite(pts), axis=1)
     centre = np.where(ok[:, None], np.round(pts), 0.0).astype(np.int64)
-    # Gradients inside each patch (its border pixels only feed the stencils): sums of grey
-    # levels, exact in float32, then scaled by a power of two, so exactly what OpenCV's
-    # float filters give.
-    p = window_patches(img, centre, half).astype(np.float32)
-    n, side = p.shape[:2]
-    gx = np.zeros((n, side, side), np.float32)
-    gy = np.zeros((n, side, side), np.float32)
-    dx = p[:, :, 2:] - p[:, :, :-2]  # (n, side, side - 2)
-    dy = p[:, 2:, :] - p[:, :-2, :]  # (n, side - 2, side)
-    if sobel:
-        # 3x3 Sobel: the central difference smoothed with (1, 2, 1) across, scaled by 1/8.
-        gx[:, 1:-1, 1:-1] = (dx[:, :-2] + 2 * dx[:, 1:-1] + dx[:, 2:]) * np.float32(0.125)
-        gy[:, 1:-1, 1:-1] = (dy[:, :, :-2] + 2 * dy[:, :, 1:-1] + dy[:, :, 2:]) * \
-            np.float32(0.125)
-    else:
-        gx[:, :, 1:-1] = dx * np.float32(0.5)
-        gy[:, 1:-1, :] = dy * np.float32(0.5)
-    gx = gx[:, 1:-1, 1:-1]
-    gy = gy[:, 1:-1, 1:-1]
-    sums = [np.where(ok, np.einsum('nij,nij->n', p, q).astype(np.float64), 0.0)
-            for p, q in ((gx, gx), (gx, gy), (gy, gy))]
-    return sums[0], sums[1], sums[2], ok
+    sums = np.zeros((len(pts), 3))
+    img = np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else
+                               img.astype(np.float32))
+    _gradient_sums(img, centre, ok, int(win_size_px) // 2, bool(sobel), sums)
+    return sums[:, 0], sums[:, 1], sums[:, 2], ok
+
+
+@kernel(image_signatures(lambda img: numba.types.void(
+    img, readonly(numba.types.int64, 2), readonly(numba.types.boolean, 1), numba.types.int64,
+    numba.types.boolean, numba.types.Array(numba.types.float64, 2, 'C'))))
+def _gradient_sums(img, centre, ok, half, sobel, out):
+    """
+    ``gradient_matrix`` entries (gxx, gxy, gyy) of the windows at integer centres, into ``out``.
+
+    Pixels outside the image repeat its border. The gradients are sums of grey levels scaled by
+    a power of two, exactly what OpenCV's float filters give; their products are summed in
+    float64.
+    """
+    h, w = img.shape
+    for i in range(len(centre)):
+        if not ok[i]:
+            continue
+        sxx = sxy = syy = 0.0
+        for dy in range(-half, half + 1):
+            y = centre[i, 1] + dy
+            ym, y0, yp = (min(max(y - 1, 0), h - 1), min(max(y, 0), h - 1),
+                          min(max(y + 1, 0), h - 1))
+            for dx in range(-half, half + 1):
+                x = centre[i, 0] + dx
+                xm, x0, xp = (min(max(x - 1, 0), w - 1), min(max(x, 0), w - 1),
+                              min(max(x + 1, 0), w - 1))
+                if sobel:  # the central difference smoothed with (1, 2, 1) across, / 8
+                    gx = 0.125 * ((float(img[ym, xp]) - float(img[ym, xm]))
+                                  + 2.0 * (float(img[y0, xp]) - float(img[y0, xm]))
+                                  + (float(img[yp, xp]) - float(img[yp, xm])))
+                    gy = 0.125 * ((float(img[yp, xm]) - float(img[ym, xm]))
+                                  + 2.0 * (float(img[yp, x0]) - float(img[ym, x0]))
+                                  + (float(img[yp, xp]) - float(img[ym, xp])))
+                else:
+                    gx = 0.5 * (float(img[y0, xp]) - float(img[y0, xm]))
+                    gy = 0.5 * (float(img[yp, x0]) - float(img[ym, x0]))
+                sxx += gx * gx
+                sxy += gx * gy
+                syy += gy * gy
+        out[i, 0], out[i, 1], out[i, 2] = sxx, sxy, syy
 
 
 def eigen_ratio(img: np.ndarray, pts: np.ndarray, win_size_px: int) -> np.ndarray:
