@@ -305,6 +305,10 @@ def test_compressed_bag_replayed_into_the_node(compressed_bag):
 
         player.play(on_message=pace)
         h.settle(30)
+        # Each transform follows its odometry on /tf: wait for the last one before stopping.
+        last = conv.nanoseconds_from_time(h.odom[-1].header.stamp)
+        assert h.wait_for(lambda: any(conv.nanoseconds_from_time(t.header.stamp) == last
+                                      for m in list(tfs) for t in m.transforms), 10.0)
         values = _values(node.diagnostics())
     finally:
         h.close()
