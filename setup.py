@@ -23,7 +23,7 @@ setup(
     install_requires=[
         'numpy>=1.24',
         'scipy>=1.10',
-        'numba>=0.59',
+        'numba>=0.58',
         'opencv-python-headless>=4.8',
         'PyYAML>=6.0',
         'rosbags>=0.10',

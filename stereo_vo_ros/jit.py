@@ -13,8 +13,11 @@ caller.
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 import logging
 import math
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -30,6 +33,36 @@ JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy',
 
 
 _UNCACHED = []  # kernels compiled without the on-disk cache (no writable place for it)
+#: This module's source, which every kernel's compiled code depends on (options, helpers).
+_STAMP = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()[:12]
+_CHECKED: set = set()
+
+
+def _drop_stale_cache(fn) -> None:
+    """
+    Delete the cached kernels of ``fn``'s module compiled against another version of this one.
+
+    Numba invalidates a kernel's cache when the kernel's own file changes, not when a function
+    it calls from another module, or the options, change. A marker file next to the cache
+    (``__pycache__/<module>.jit-<stamp>``) says which version of this module the cache was
+    built with. Only the cache next to the sources is checked: a read-only install does not
+    change.
+    """
+    src = Path(inspect.getfile(fn))
+    if src in _CHECKED or src == Path(__file__):
+        return
+    _CHECKED.add(src)
+    cache = src.parent / '__pycache__'
+    marker = cache / f'{src.stem}.jit-{_STAMP}'
+    try:
+        if not cache.is_dir() or marker.exists():
+            return
+        for old in [*cache.glob(f'{src.stem}.*.nbi'), *cache.glob(f'{src.stem}.*.nbc'),
+                    *cache.glob(f'{src.stem}.jit-*')]:
+            old.unlink(missing_ok=True)
+        marker.touch()
+    except OSError:  # not writable: Numba uses the user's cache directory then
+        pass
 
 
 def kernel(signatures=None):
@@ -38,11 +71,13 @@ def kernel(signatures=None):
 
     Numba keeps its cache next to the module, else in the user's cache directory; with neither
     writable (a read-only install run by a user without a writable home) the kernel is compiled
-    without the cache, at every start, and a warning says so once.
+    without the cache, at every start, and a warning says so once. A cache built against
+    another version of this module is dropped first (``_drop_stale_cache``).
     """
     args = () if signatures is None else (signatures,)
 
     def decorate(fn):
+        _drop_stale_cache(fn)
         try:
             return numba.njit(*args, **JIT)(fn)
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"

@@ -123,6 +123,12 @@ def test_failures_keep_the_start_and_inputs_are_not_modified():
     assert not ok.all()
     out, ok = refine_affine(img0, img0, np.zeros((0, 2)), np.zeros((0, 2)))
     assert out.shape == (0, 2) and ok.shape == (0,)
+    with pytest.raises(ValueError):  # one template per match
+        refine_affine(img0, img1, pts[:3], far[:4])
+    # Any memory layout of the points.
+    out, ok = refine_affine(img0, img1, np.asfortranarray(pts), np.asfortranarray(far - 1.5),
+                            max_shift_px=1.0)
+    np.testing.assert_array_equal(out, refined)
 
 
 def test_each_point_is_refined_on_its_own_for_any_image_type():
@@ -179,3 +185,28 @@ print('uncached', len(jit._UNCACHED))
     assert done.returncode == 0, done.stderr
     assert 'uncached' in done.stdout
     assert done.stderr.count('compiled kernels are not cached') == 1
+
+
+def test_a_cache_built_against_another_version_of_the_kernel_options_is_dropped(tmp_path):
+    """Kernels call jit.py's helpers and take its options: its change invalidates their cache."""
+    import importlib.util
+    from stereo_vo_ros import jit
+    (tmp_path / 'kernels_mod.py').write_text('def f():\n    return 1\n')
+    cache = tmp_path / '__pycache__'
+    cache.mkdir()
+    stale = [cache / 'kernels_mod.f-1.py311.nbi', cache / 'kernels_mod.f-1.py311.1.nbc',
+             cache / 'kernels_mod.jit-000000000000']
+    other = cache / 'other.f-1.py311.nbi'
+    for path in stale + [other]:
+        path.write_bytes(b'x')
+    spec = importlib.util.spec_from_file_location('kernels_mod', tmp_path / 'kernels_mod.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    jit._drop_stale_cache(module.f)
+    assert not any(path.exists() for path in stale) and other.exists()
+    assert (cache / f'kernels_mod.jit-{jit._STAMP}').exists()
+    kept = cache / 'kernels_mod.f-1.py311.nbi'
+    kept.write_bytes(b'x')  # built against this version: kept from now on
+    jit._CHECKED.discard(tmp_path / 'kernels_mod.py')
+    jit._drop_stale_cache(module.f)
+    assert kept.exists()

@@ -172,10 +172,10 @@ def test_an_update_can_start_from_the_linearisation_of_another():
             point.update(mean, cov, h, z, reweighted).mean)
 
 
-def test_cameras_and_predictions_match_the_projection_matrices():
+def test_predictions_match_the_projection_matrices():
     rng = np.random.default_rng(4)
     calib, model = kitti_model(rng)
-    for K in (1, 12, 100):  # the scalar, monomial and row-by-row paths
+    for K in (1, 12, 100):
         y = rng.normal(size=(K, 6)) * [3, 1, 10, 0.3, 0.5, 0.3]
         R, t = rotation_from_rates(y[:, 3:], model.dt), y[:, :3] * model.dt
         Rt = np.swapaxes(R, 1, 2)
@@ -183,11 +183,19 @@ def test_cameras_and_predictions_match_the_projection_matrices():
         P = np.concatenate([calib.K_left @ M, calib.K_right @ (
             calib.R_right_left @ M + np.append(np.zeros(3), 1.0)[None, None] *
             calib.t_right_left[:, None])], axis=1)
-        np.testing.assert_allclose(model.cameras(y), P, rtol=1e-13, atol=1e-9)
         h = P @ model.X.T  # (K, 6, N)
         ref = np.stack([h[:, 0] / h[:, 2], h[:, 1] / h[:, 2], h[:, 3] / h[:, 5],
                         h[:, 4] / h[:, 5]], axis=-1)
         np.testing.assert_allclose(model.predict(y), ref, rtol=1e-13, atol=1e-9)
+    # Batched: problem b's states see its own points; states that do not pair are refused.
+    X = np.stack([model.X[:5], model.X[5:10]])  # (2, 5, 4)
+    y = rng.normal(size=(6, 2, 3)) * np.array([3, 1, 10, 0.3, 0.5, 0.3])[:, None, None]
+    batched = model.predict_planes(y, X)  # (4, 2, 3, 5)
+    for b in range(2):
+        np.testing.assert_allclose(batched[:, b], model.predict_planes(y[:, b], X[b]),
+                                   rtol=1e-13)
+    with pytest.raises(ValueError):
+        model.predict_planes(y.reshape(6, 6), X)
 
 
 def test_reprojection_errors_and_noise_gain_match_their_definitions():

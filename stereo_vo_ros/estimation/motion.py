@@ -50,27 +50,6 @@ def _rotation_entries(cz: np.ndarray, sz: np.ndarray, cx: np.ndarray, sx: np.nda
             -cx * sy, sx, cx * cy)
 
 
-def _transposed_rotation_rows(Rt: np.ndarray, cz: np.ndarray, sz: np.ndarray, cx: np.ndarray,
-                              sx: np.ndarray, cy: np.ndarray, sy: np.ndarray) -> None:
-    """Write ``R^T`` (eq. 6, as :func:`_rotation_entries`) into ``Rt[:3, :3]`` (rows of K)."""
-    szsx, czsx = sz * sx, cz * sx
-    np.multiply(cz, cy, out=Rt[0, 0])
-    Rt[0, 0] -= szsx * sy
-    np.negative(sz, out=Rt[1, 0])
-    Rt[1, 0] *= cx
-    np.multiply(cz, sy, out=Rt[2, 0])
-    Rt[2, 0] += szsx * cy
-    np.multiply(sz, cy, out=Rt[0, 1])
-    Rt[0, 1] += czsx * sy
-    np.multiply(cz, cx, out=Rt[1, 1])
-    np.multiply(sz, sy, out=Rt[2, 1])
-    Rt[2, 1] -= czsx * cy
-    np.negative(cx, out=Rt[0, 2])
-    Rt[0, 2] *= sy
-    Rt[1, 2] = sx
-    np.multiply(cx, cy, out=Rt[2, 2])
-
-
 def rotation_from_rates(omega: np.ndarray, dt: float | np.ndarray) -> np.ndarray:
     """Eq. 8: rotation over ``dt`` for angular rates (..., 3) = (w_X, w_Y, w_Z) in rad/s."""
     a = np.asarray(omega, np.float64) * np.asarray(dt, np.float64)[..., None]
@@ -106,35 +85,6 @@ STATE_DIM = 6
 _PAIR_CACHE: dict[int, tuple] = {}
 
 
-def _rotation_monomials() -> np.ndarray:
-    """
-    Eq. 6 as a linear map (3, 3, 27) of monomials: ``R[i, j] = sum_m M[i, j, m] mono_m``.
-
-    ``mono[9 a + 3 b + c] = (z_a x_b) y_c`` with ``z = (1, cos theta, sin theta)``, ``x`` the
-    same of phi and ``y`` of psi: every entry of R is a signed sum of such products.
-    """
-    M = np.zeros((3, 3, 27))
-    one, cos, sin = 0, 1, 2
-    terms = {(0, 0): [((cos, one, cos), 1), ((sin, sin, sin), -1)],
-             (0, 1): [((sin, cos, one), -1)],
-             (0, 2): [((cos, one, sin), 1), ((sin, sin, cos), 1)],
-             (1, 0): [((sin, one, cos), 1), ((cos, sin, sin), 1)],
-             (1, 1): [((cos, cos, one), 1)],
-             (1, 2): [((sin, one, sin), 1), ((cos, sin, cos), -1)],
-             (2, 0): [((one, cos, sin), -1)],
-             (2, 1): [((one, sin, one), 1)],
-             (2, 2): [((one, cos, cos), 1)]}
-    for (i, j), monomials in terms.items():
-        for (a, b, c), sign in monomials:
-            M[i, j, 9 * a + 3 * b + c] = sign
-    return M
-
-
-_ROTATION_MONOMIALS = _rotation_monomials()
-#: Up to this many states _camera_planes forms the rotations from the monomials.
-_MONOMIAL_STATES = 64
-
-
 def _pair_geometry(calib: StereoCalibration
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """
@@ -149,9 +99,7 @@ def _pair_geometry(calib: StereoCalibration
     P_A, P_B = calib.projection_left(), calib.projection_right()
     W = np.vstack([calib.K_left, calib.K_right @ calib.R_right_left])
     o = np.concatenate([np.zeros(3), calib.K_right @ calib.t_right_left])
-    # W R^T (6, 3) as a linear map of the 27 monomials of eq. 6.
-    C = np.einsum('rj,cjm->rcm', W, _ROTATION_MONOMIALS)  # (6, 3, 27)
-    out = (tensor_basis(P_A, P_B), fundamental_from_projections(P_A, P_B), W, (o, C))
+    out = (tensor_basis(P_A, P_B), fundamental_from_projections(P_A, P_B), W, o)
     if len(_PAIR_CACHE) > 8:
         _PAIR_CACHE.clear()
     _PAIR_CACHE[id(calib)] = (calib, out)
@@ -193,7 +141,7 @@ class TransferModel:
         # Both current cameras at once: P(y) = [W R^T | o - W R^T t] with W = [K_L; K_R R_rl]
         # (6, 3) and o = [0; K_R t_rl].
         self.G, self.F, _, _ = _pair_geometry(calib)
-        _, _, self._W, (self._o, self._C) = _pair_geometry(cur)
+        _, _, self._W, self._o = _pair_geometry(cur)
         self.prev_left = np.asarray(prev_left, np.float64)
         self.prev_right = np.asarray(prev_right, np.float64)
         left_t, right_t = self.prev_left.T, self.prev_right.T
@@ -269,59 +217,6 @@ class TransferModel:
             gain = np.where(np.isfinite(gain), gain, 1e6)
         return gain
 
-    def cameras(self, y: np.ndarray) -> np.ndarray:
-        """
-        Return the stacked current left and right projections (..., 6, 4) for states y.
-
-        Rows 0-2 are ``P_C`` (current left), rows 3-5 ``P_D`` (current right), both mapping
-        points of the previous left camera frame to pixels.
-        """
-        y = np.asarray(y, np.float64)
-        P = self._camera_planes(y.reshape(-1, STATE_DIM).T)  # (6, 4, K)
-        return P.transpose(2, 0, 1).reshape(y.shape[:-1] + (6, 4))
-
-    def _camera_planes(self, yT: np.ndarray) -> np.ndarray:
-        """
-        Return the cameras of K states given component by component (yT (6, K)).
-
-        P (6, 4, K), ``P[:, :, k]`` the stacked projections of state k (see :meth:`cameras`):
-        ``P = [W R^T | o - W R^T t]``. For a few states ``W R^T`` comes from one matrix product
-        with the 27 products of the sines and cosines of eq. 6 (``_ROTATION_MONOMIALS``, fewest
-        operations); for many, the entries of ``R^T`` are formed row by row (least arithmetic)
-        and multiplied by W.
-        """
-        K = yT.shape[1]
-        if K == 1:
-            return self._camera(yT[:, 0])[..., None]
-        a = yT[3:] * self.dt  # phi (about x), psi (about y), theta (about z)
-        P = np.empty((6, 4, K))
-        if K <= _MONOMIAL_STATES:
-            V = np.empty((3, 3, K))  # [x, y, z angle][1, cos, sin]
-            V[:, 0] = 1.0
-            np.cos(a, out=V[:, 1])
-            np.sin(a, out=V[:, 2])
-            mono = (V[2][:, None] * V[0][None])[:, :, None] * V[1][None, None]  # (3, 3, 3, K)
-            WRt = np.matmul(self._C, mono.reshape(27, K), out=P[:, :3])  # (6, 3, K)
-        else:
-            c, s = np.cos(a), np.sin(a)
-            Rt = np.empty((3, 3, K))
-            _transposed_rotation_rows(Rt, c[2], s[2], c[0], s[0], c[1], s[1])
-            WRt = np.matmul(self._W, Rt.reshape(3, 3 * K), out=P[:, :3].reshape(6, 3 * K))
-            WRt = P[:, :3]
-        m = WRt * (yT[:3] * self.dt)  # (W R^T)[:, c] t_c
-        np.subtract(self._o[:, None], m.sum(axis=1), out=P[:, 3])
-        return P
-
-    def _camera(self, y: np.ndarray) -> np.ndarray:
-        """Return the cameras (6, 4) of one state (6,), with scalar trigonometry."""
-        phi, psi, theta = (float(v) * self.dt for v in y[3:])
-        R = np.array(_rotation_entries(math.cos(theta), math.sin(theta), math.cos(phi),
-                                       math.sin(phi), math.cos(psi), math.sin(psi)))
-        P = np.empty((6, 4))  # as _camera_planes
-        np.matmul(self._W, R.reshape(3, 3).T, out=P[:, :3])
-        P[:, 3] = self._o - P[:, :3] @ (y[:3] * self.dt)
-        return P
-
     def predict(self, y: np.ndarray, X: np.ndarray | None = None) -> np.ndarray:
         """
         Predict current pixels for states ``y``.
@@ -374,6 +269,9 @@ class TransferModel:
         """
         X = self.X if X is None else X
         lead = yT.shape[1:]
+        if X.ndim == 3 and (len(lead) != 2 or lead[0] != X.shape[0]):
+            raise ValueError(f'states {yT.shape} do not pair with batched X {X.shape}: expected '
+                             f'(6, {X.shape[0]}, K)')
         states = np.ascontiguousarray(yT, np.float64).reshape(STATE_DIM, -1)
         XT = X.swapaxes(-1, -2)
         XT = np.ascontiguousarray(XT if X.ndim == 3 else XT[None])  # (B, 4, N)
@@ -405,7 +303,7 @@ def _project(states, dt, W, o, XT, out):
         cx, sx = math.cos(phi), math.sin(phi)
         cy, sy = math.cos(psi), math.sin(psi)
         szsx, czsx = sz * sx, cz * sx
-        # R row by row (eq. 6); (W R^T)[r, c] = sum_j W[r, j] R[c, j].
+        # R row by row (eq. 6, as _rotation_entries); (W R^T)[r, c] = sum_j W[r, j] R[c, j].
         r00, r01, r02 = cz * cy - szsx * sy, -sz * cx, cz * sy + szsx * cy
         r10, r11, r12 = sz * cy + czsx * sy, cz * cx, sz * sy - czsx * cy
         r20, r21, r22 = -cx * sy, sx, cx * cy

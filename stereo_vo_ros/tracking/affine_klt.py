@@ -15,10 +15,10 @@ the window of the first image (the template) is fixed; the second image is sampl
 updated. Brightness is compared after removing each window's mean and scaling it to the
 template's contrast, so exposure changes do not move the estimate.
 
-The loop over points is compiled with Numba (``_refine_points``; on first use, then loaded
-from the on-disk cache in ``__pycache__``): one pass over each window per step, bilinear
-sampling in float64 with the border replicated, no temporary arrays, and the GIL released, so
-the tracker runs it on its helper thread next to an OpenCV call. The vectorised NumPy form it
+The loop over points is compiled with Numba (``_refine_points``, as the module is imported;
+see ``jit``): one pass over each window per step, bilinear sampling in float64 with the border
+replicated, no temporary arrays, and the GIL released, so the tracker runs it on its helper
+thread next to an OpenCV call. The vectorised NumPy form it
 replaced (``cv2.remap`` with weights quantised to 1/32 pixel, on float copies of the images)
 took about three times as long per KITTI pair (3.2-3.5 against 1.0-1.3 ms), with the same
 accuracy within the scene-to-scene spread (``docs/benchmarks.md``).
@@ -92,15 +92,18 @@ def _warped(img, cx, cy, a00, a01, a10, a11, xs, ys, out):
             v = cy + a10 * xs[i] + a11 * ys[j]
             lo_x, hi_x = min(lo_x, u), max(hi_x, u)
             lo_y, hi_y = min(lo_y, v), max(hi_y, v)
-    inside = lo_x >= 0.0 and lo_y >= 0.0 and hi_x < w - 1.0 and hi_y < h - 1.0
+    # A margin: the samples below are computed again, and may round differently.
+    inside = (lo_x >= 1e-3 and lo_y >= 1e-3 and hi_x < w - 1.001 and hi_y < h - 1.001)
     for k in range(len(xs)):
         u = cx + a00 * xs[k] + a01 * ys[k]
         v = cy + a10 * xs[k] + a11 * ys[k]
+        if not inside:  # clamped before int(), which is undefined for huge values
+            u, v = min(max(u, -1.0), w + 0.0), min(max(v, -1.0), h + 0.0)
         uf, vf = math.floor(u), math.floor(v)
         fx, fy = u - uf, v - vf
         xa, ya = int(uf), int(vf)
         xb, yb = xa + 1, ya + 1
-        if not inside:  # int() of a huge coordinate is undefined: only its clamp is used
+        if not inside:
             xa, xb = min(max(xa, 0), w - 1), min(max(xb, 0), w - 1)
             ya, yb = min(max(ya, 0), h - 1), min(max(yb, 0), h - 1)
         p00, p01 = float(img[ya, xa]), float(img[ya, xb])  # float before any difference
@@ -281,15 +284,17 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
         (N,) bool, the refinement was accepted.
 
     """
-    given = np.asarray(pts_to, np.float64).reshape(-1, 2)
-    refined, ok = np.empty_like(given), np.zeros(len(given), bool)
+    given = np.ascontiguousarray(np.asarray(pts_to, np.float64).reshape(-1, 2))
+    start = np.ascontiguousarray(np.asarray(pts_from, np.float64).reshape(-1, 2))
+    if len(start) != len(given):
+        raise ValueError(f'{len(start)} template points for {len(given)} matches')
+    refined, ok = np.empty((len(given), 2)), np.zeros(len(given), bool)
     if len(given) == 0:
         return refined, ok
     src, dst = _image(img_from), _image(img_to)
     if src.dtype != dst.dtype:
         src, dst = src.astype(np.float32), dst.astype(np.float32)
-    _refine_points(src, dst, np.ascontiguousarray(pts_from, np.float64).reshape(-1, 2),
-                   np.ascontiguousarray(given), int(win_size_px) // 2, max(int(step_px), 1),
+    _refine_points(src, dst, start, given, int(win_size_px) // 2, max(int(step_px), 1),
                    int(iterations), bool(horizontal), float(max_shift_px), refined, ok)
     return refined, ok
 

@@ -494,8 +494,9 @@ class StereoTracker:
                 left, right, calib, stats, prior, cur_l[alive], cur_r,
                 ideal_l[:, 0] - ideal_r[:, 0], self._planned_kept)
         klt_r = cur_r.astype(np.float64)
+        refined_r = refined(ok)  # joins the helper's job even when no match is left
         if cfg.affine_refinement and len(alive):
-            cur_r = refined(ok)
+            cur_r = refined_r
             ideal_r = calib.undistort_right(cur_r)
 
         ages = f.ages[alive] + 1
