@@ -72,6 +72,13 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return A
 
 
+def _timed(fn, *args):
+    """Return ``fn(*args)`` and the time it took (ms)."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, (time.perf_counter() - t0) * 1e3
+
+
 def validate_images(left: np.ndarray, right: np.ndarray, calib: StereoCalibration) -> None:
     """Raise ImageError unless both images are 2-D, non-empty, equal and match the calibration."""
     for img, name in ((left, 'left'), (right, 'right')):
@@ -393,12 +400,13 @@ class StereoOdometry:
 
         With a helper thread they are built there, next to the motion estimate (OpenCV
         filters, which release the GIL); the same images either way. Returns the pending
-        result (``.result()``), or None when the road is not aligned.
+        result (``.result()``: the images and the time building them took, ms), or None when
+        the road is not aligned.
         """
         if not self.config.road.enabled or calib.kind != 'rectified':
             return None
         left, right = self.tracker.last_pair()
-        return self.workers.submit_local(self.road.prepare, left, right,
+        return self.workers.submit_local(_timed, self.road.prepare, left, right,
                                          self.road.first_row(calib, self._road_plane))
 
     def _road_step(self, frame: StereoFrame, dt: float, measure: bool,
@@ -423,7 +431,7 @@ class StereoOdometry:
         prev_images, plane = self._road_images, self._road_plane
         if images is None:
             images = self._start_road_images(calib)
-        images = images.result()  # this pair, as the tracker converted it
+        images, prepare_ms = images.result()  # this pair, as the tracker converted it
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
         fused = False
         if measure and prev_images is not None and plane is not None:
@@ -440,7 +448,8 @@ class StereoOdometry:
             if found is not None:
                 plane = self.road.refine_plane(images, calib, RoadPlane(*found))
         self._road_images, self._road_plane = images, plane
-        timings['road'] = (time.perf_counter() - t0) * 1e3
+        # The pyramids' time counts wherever they were built.
+        timings['road'] = (time.perf_counter() - t0) * 1e3 + prepare_ms
         return fused
 
     def _prior(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float):
