@@ -802,39 +802,57 @@ def test_aperture_checks_next_to_the_klt_pass_change_nothing():
         helper.close()
 
 
-def test_refinement_next_to_the_reverse_passes_changes_nothing(monkeypatch):
-    """With a helper the refinements run there, on every match before its check: same output."""
-    calib = rectified_calib()
-    calls = []  # (on the helper thread, matches refined)
-    real = tracker_module.refine_affine
+def _alone_and_beside(first, second, calib, notes: list, prior=None):
+    """
+    Track two pairs with a tracker alone and with one that has a helper thread.
 
-    def recorded(img_from, img_to, pts_from, *args, **kwargs):
-        calls.append((threading.current_thread() is not threading.main_thread(),
-                      len(pts_from)))
-        return real(img_from, img_to, pts_from, *args, **kwargs)
-    monkeypatch.setattr(tracker_module, 'refine_affine', recorded)
+    Returns both trackers' outputs of the second pair. ``notes`` gets a list per tracker, for
+    what a patched function notes while the tracker tracks the second pair: append to
+    ``notes[-1]`` when it is not None.
+    """
     helper = Workers(2, set_opencv=False, kind='thread')
-    outs, seen = [], []
+    outs = []
     try:
         for workers in (inline(), helper):
             tracker = StereoTracker(config(), BucketingConfig(), workers)
-            tracker.track(*pair(M1), calib)
-            calls.clear()
-            outs.append(tracker.track(*pair(M2), calib))
-            seen.append(list(calls))
+            notes.append(None)
+            tracker.track(*first, calib)
+            notes[-1] = []
+            outs.append(tracker.track(*second, calib, prior))
     finally:
         helper.close()
+    return outs
+
+
+def _assert_same_output(a, b) -> None:
+    """Assert that the two trackers' outputs of a pair are the same, bit for bit."""
+    for x, y in zip(dataclasses.astuple(a.correspondences) + dataclasses.astuple(a.raw),
+                    dataclasses.astuple(b.correspondences) + dataclasses.astuple(b.raw)):
+        np.testing.assert_array_equal(x, y)
+    for key in ('features_left_raw', 'features_right_raw', 'feature_ids', 'feature_ages'):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+    assert a.stats.failed == b.stats.failed
+    assert len(a.correspondences) > 100
+
+
+def test_refinement_next_to_the_reverse_passes_changes_nothing(monkeypatch):
+    """With a helper the refinements run there, on every match before its check: same output."""
+    real = tracker_module.refine_affine
+    seen: list = []  # per tracker: (on the helper thread, matches refined)
+
+    def recorded(img_from, img_to, pts_from, *args, **kwargs):
+        if seen[-1] is not None:
+            seen[-1].append((threading.current_thread() is not threading.main_thread(),
+                             len(pts_from)))
+        return real(img_from, img_to, pts_from, *args, **kwargs)
+    monkeypatch.setattr(tracker_module, 'refine_affine', recorded)
+    a, b = _alone_and_beside(pair(M1), pair(M2), rectified_calib(), seen)
     # Alone: the temporal and the stereo refinement in the caller, on the kept matches; with
     # the helper: both there, on at least as many.
     assert [on for on, _ in seen[0]] == [False, False]
     assert [on for on, _ in seen[1]] == [True, True]
     assert all(n_b >= n_a for (_, n_a), (_, n_b) in zip(*seen))
-    a, b = outs
-    for x, y in zip(dataclasses.astuple(a.correspondences) + dataclasses.astuple(a.raw),
-                    dataclasses.astuple(b.correspondences) + dataclasses.astuple(b.raw)):
-        np.testing.assert_array_equal(x, y)
-    assert a.stats.failed == b.stats.failed
-    assert len(a.correspondences) > 100
+    _assert_same_output(a, b)
 
 
 def test_gradient_matrix_sobel_is_opencv_sobel():
@@ -1015,37 +1033,23 @@ def test_brightness_maps_made_ahead_on_a_helper_change_nothing(monkeypatch):
     # Every image of the two pairs differs from the others in gain: all three maps apply.
     exposures = ((1.0, 0.0), (1.25, -4.0), (0.75, 5.0), (0.95, 3.0))
     changed = [exposed(img, g, o) for img, (g, o) in zip([*pair(M1), *pair(M2)], exposures)]
-    maps = []  # (made in the caller's thread, changed the image)
     real = photometric.apply_transfer
+    made: list = []  # per tracker: (made in the caller's thread, changed the image)
 
     def recorded(img, *args):
         out = real(img, *args)
-        maps.append((threading.current_thread() is threading.main_thread(), out is not img))
+        if made[-1] is not None:
+            made[-1].append((threading.current_thread() is threading.main_thread(),
+                             out is not img))
         return out
     monkeypatch.setattr(photometric, 'apply_transfer', recorded)
-    helper = Workers(2, set_opencv=False, kind='thread')
-    outs, made = [], []
-    try:
-        for workers in (inline(), helper):
-            tracker = StereoTracker(config(), BucketingConfig(), workers)
-            tracker.track(changed[0], changed[1], calib)
-            maps.clear()
-            outs.append(tracker.track(changed[2], changed[3], calib, shift_prior(delta)))
-            made.append(sorted(maps))
-    finally:
-        helper.close()
+    a, b = _alone_and_beside(changed[:2], changed[2:], calib, made, shift_prior(delta))
+    made = [sorted(run) for run in made]
     # Alone: temporal, stereo and bi-circular maps in the caller. With the helper: the temporal
     # one in the caller, the two others on the helper, each made once.
     assert made[0] == [(True, True)] * 3
     assert made[1] == [(False, True), (False, True), (True, True)]
-    a, b = outs
-    for x, y in zip(dataclasses.astuple(a.correspondences) + dataclasses.astuple(a.raw),
-                    dataclasses.astuple(b.correspondences) + dataclasses.astuple(b.raw)):
-        np.testing.assert_array_equal(x, y)
-    for key in ('features_left_raw', 'features_right_raw', 'feature_ids', 'feature_ages'):
-        np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
-    assert a.stats.failed == b.stats.failed
-    assert len(a.correspondences) > 100
+    _assert_same_output(a, b)
 
 
 def test_photometric_map_is_not_applied_to_matching_images():
