@@ -98,6 +98,13 @@ def readonly(dtype, ndim: int):
     return numba.types.Array(dtype, ndim, 'C', readonly=True)
 
 
+def kernel_image(img: np.ndarray) -> np.ndarray:
+    """Return ``img`` as a C-contiguous array of one of ``IMAGE_TYPES`` (else float32)."""
+    img = np.asarray(img)
+    return np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else
+                                img.astype(np.float32))
+
+
 def image_signatures(make) -> list:
     """Return ``make(image_type)`` for every type of ``IMAGE_TYPES`` (an eager ``njit`` list)."""
     return [make(readonly(t, 2)) for t in IMAGE_TYPES]

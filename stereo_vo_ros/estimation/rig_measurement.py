@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from .camera import StereoCalibration
 from ..config import RigConfig
-from ..jit import cholesky, cholesky_solve, image_signatures, kernel, readonly
+from ..jit import cholesky, cholesky_solve, image_signatures, kernel, kernel_image, readonly
 from ..records import Correspondences
 
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
@@ -213,10 +213,7 @@ def row_coupling(img: np.ndarray, pts: np.ndarray, win_size_px: int, step_px: in
     H, W = img.shape
     cx = np.clip(np.rint(pts[:, 0]).astype(np.intp), half + 1, W - half - 2)
     cy = np.clip(np.rint(pts[:, 1]).astype(np.intp), half + 1, H - half - 2)
-    img = np.asarray(img)
-    img = np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else
-                               img.astype(np.float32))
-    _row_couplings(img, cx, cy, half, max(int(step_px), 1), out)
+    _row_couplings(kernel_image(img), cx, cy, half, max(int(step_px), 1), out)
     return out
 
 

@@ -37,7 +37,7 @@ import math
 import numba
 import numpy as np
 
-from ..jit import cholesky, cholesky_solve, image_signatures, kernel, readonly
+from ..jit import cholesky, cholesky_solve, image_signatures, kernel, kernel_image, readonly
 
 #: Largest accepted move of a point by the refinement (pixels).
 MAX_SHIFT_PX = 2.0
@@ -291,16 +291,9 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
     refined, ok = np.empty((len(given), 2)), np.zeros(len(given), bool)
     if len(given) == 0:
         return refined, ok
-    src, dst = _image(img_from), _image(img_to)
+    src, dst = kernel_image(img_from), kernel_image(img_to)
     if src.dtype != dst.dtype:
         src, dst = src.astype(np.float32), dst.astype(np.float32)
     _refine_points(src, dst, start, given, int(win_size_px) // 2, max(int(step_px), 1),
                    int(iterations), bool(horizontal), float(max_shift_px), refined, ok)
     return refined, ok
-
-
-def _image(img: np.ndarray) -> np.ndarray:
-    """Return ``img`` as a C-contiguous uint8 or float32 array (the types compiled for)."""
-    img = np.asarray(img)
-    return np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else
-                                img.astype(np.float32))

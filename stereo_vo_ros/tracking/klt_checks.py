@@ -33,7 +33,7 @@ import numpy as np
 from ..config import TRACKER_VARIANTS
 from ..errors import ConfigError
 from ..estimation.camera import StereoCalibration
-from ..jit import image_signatures, kernel, readonly
+from ..jit import image_signatures, kernel, kernel_image, readonly
 
 #: Convergence threshold of one KLT iteration (pixels), as VINS-Fusion uses.
 KLT_EPSILON_PX = 0.01
@@ -195,9 +195,7 @@ def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: b
     ok = np.all(np.isfinite(pts), axis=1)
     centre = np.where(ok[:, None], np.round(pts), 0.0).astype(np.int64)
     sums = np.zeros((len(pts), 3))
-    img = np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else
-                               img.astype(np.float32))
-    _gradient_sums(img, centre, ok, int(win_size_px) // 2, bool(sobel), sums)
+    _gradient_sums(kernel_image(img), centre, ok, int(win_size_px) // 2, bool(sobel), sums)
     return sums[:, 0], sums[:, 1], sums[:, 2], ok
 
 

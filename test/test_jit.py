@@ -1,0 +1,60 @@
+"""
+Tests of the compiled kernels' support (``stereo_vo_ros/jit.py``): their disk cache.
+
+The kernels themselves are tested where they are used (``test_affine_klt.py``,
+``test_tracker.py``, ``test_rig_calibration.py``, ``test_estimator_fast_paths.py``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+import subprocess
+import sys
+
+
+def test_kernels_work_without_a_place_for_their_cache():
+    """No writable cache location (read-only install, no home): compiled uncached, a warning."""
+    code = """
+import logging
+import numba.core.caching as caching
+caching.CacheImpl._locator_classes = []  # no location can hold the cache
+logging.basicConfig()
+import numpy as np
+from stereo_vo_ros import jit
+from stereo_vo_ros.tracking.affine_klt import refine_affine
+img = (np.arange(60 * 80) % 251).astype(np.uint8).reshape(60, 80)
+pts = np.array([[40.3, 30.2]])
+out, ok = refine_affine(img, img, pts, pts + 0.3)
+assert np.all(np.isfinite(out)) and len(jit._UNCACHED) >= 3, jit._UNCACHED
+print('uncached', len(jit._UNCACHED))
+"""
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1], timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert 'uncached' in done.stdout
+    assert done.stderr.count('compiled kernels are not cached') == 1
+
+
+def test_a_cache_built_against_another_version_of_the_kernel_options_is_dropped(tmp_path):
+    """Kernels call jit.py's helpers and take its options: its change invalidates their cache."""
+    from stereo_vo_ros import jit
+    (tmp_path / 'kernels_mod.py').write_text('def f():\n    return 1\n')
+    cache = tmp_path / '__pycache__'
+    cache.mkdir()
+    stale = [cache / 'kernels_mod.f-1.py311.nbi', cache / 'kernels_mod.f-1.py311.1.nbc',
+             cache / 'kernels_mod.jit-000000000000']
+    other = cache / 'other.f-1.py311.nbi'
+    for path in stale + [other]:
+        path.write_bytes(b'x')
+    spec = importlib.util.spec_from_file_location('kernels_mod', tmp_path / 'kernels_mod.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    jit._drop_stale_cache(module.f)
+    assert not any(path.exists() for path in stale) and other.exists()
+    assert (cache / f'kernels_mod.jit-{jit._STAMP}').exists()
+    kept = cache / 'kernels_mod.f-1.py311.nbi'
+    kept.write_bytes(b'x')  # built against this version: kept from now on
+    jit._CHECKED.discard(tmp_path / 'kernels_mod.py')
+    jit._drop_stale_cache(module.f)
+    assert kept.exists()
