@@ -21,7 +21,7 @@ from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfi
 from stereo_vo_ros.errors import ConfigError, ImageError
 from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.parallel import inline, Workers
-from stereo_vo_ros.tracking import photometric, tracker as tracker_module
+from stereo_vo_ros.tracking import photometric
 from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
 from stereo_vo_ros.tracking.detection import detect_corners
 from stereo_vo_ros.tracking.klt_checks import (aperture_checks, bicircular_error, CheckSet,
@@ -833,26 +833,6 @@ def _assert_same_output(a, b) -> None:
         np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
     assert a.stats.failed == b.stats.failed
     assert len(a.correspondences) > 100
-
-
-def test_refinement_next_to_the_reverse_passes_changes_nothing(monkeypatch):
-    """With a helper the refinements run there, on every match before its check: same output."""
-    real = tracker_module.refine_affine
-    seen: list = []  # per tracker: (on the helper thread, matches refined)
-
-    def recorded(img_from, img_to, pts_from, *args, **kwargs):
-        if seen[-1] is not None:
-            seen[-1].append((threading.current_thread() is not threading.main_thread(),
-                             len(pts_from)))
-        return real(img_from, img_to, pts_from, *args, **kwargs)
-    monkeypatch.setattr(tracker_module, 'refine_affine', recorded)
-    a, b = _alone_and_beside(pair(M1), pair(M2), rectified_calib(), seen)
-    # Alone: the temporal and the stereo refinement in the caller, on the kept matches; with
-    # the helper: both there, on at least as many.
-    assert [on for on, _ in seen[0]] == [False, False]
-    assert [on for on, _ in seen[1]] == [True, True]
-    assert all(n_b >= n_a for (_, n_a), (_, n_b) in zip(*seen))
-    _assert_same_output(a, b)
 
 
 def test_gradient_matrix_sobel_is_opencv_sobel():

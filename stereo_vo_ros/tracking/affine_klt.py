@@ -17,8 +17,7 @@ template's contrast, so exposure changes do not move the estimate.
 
 The loop over points is compiled with Numba (``_refine_points``, as the module is imported;
 see ``jit``): one pass over each window per step, bilinear sampling in float64 with the border
-replicated, no temporary arrays, and the GIL released, so the tracker runs it on its helper
-thread next to an OpenCV call. The vectorised NumPy form it
+replicated, no temporary arrays, and the GIL released. The vectorised NumPy form it
 replaced (``cv2.remap`` with weights quantised to 1/32 pixel, on float copies of the images)
 took about three times as long per KITTI pair (3.2-3.5 against 1.0-1.3 ms), with the same
 accuracy within the scene-to-scene spread (``docs/benchmarks.md``).

@@ -413,8 +413,6 @@ class StereoTracker:
         failed['temporal'] = int(np.count_nonzero(passed & ~tracked))
         alive = np.flatnonzero(passed & tracked)
 
-        refined = self._start_refinement(prev_left, left, f.left_raw[alive], cur_l[alive],
-                                         stats)
         t = clock()
         npts['temporal_bwd'] = len(alive)
         back, ok = lk_pass(left_m, prev_left, cur_l[alive], f.left_raw[alive],
@@ -423,7 +421,7 @@ class StereoTracker:
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
         alive = alive[ok]
-        cur_l[alive] = refined(ok)
+        cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
         #    disparity constraint (eq. 6) and range run before the reverse pass.
@@ -472,7 +470,6 @@ class StereoTracker:
         ms['stereo_fwd'] = (clock() - t) * 1e3
 
         # Left-right check (eq. 5); without the disparity constraint the range check follows.
-        refined = self._start_refinement(left, right, cur_l[alive], cur_r, stats, stereo=True)
         t = clock()
         npts['stereo_bwd'] = len(alive)
         back, ok = lk_pass(right_m, left, cur_r, cur_l[alive], REVERSE_PYRAMID_LEVELS, win,
@@ -494,9 +491,8 @@ class StereoTracker:
                 left, right, calib, stats, prior, cur_l[alive], cur_r,
                 ideal_l[:, 0] - ideal_r[:, 0], self._planned_kept)
         klt_r = cur_r.astype(np.float64)
-        refined_r = refined(ok)  # joins the helper's job even when no match is left
         if cfg.affine_refinement and len(alive):
-            cur_r = refined_r
+            cur_r = self._refine(left, right, cur_l[alive], cur_r, stats, stereo=True)
             ideal_r = calib.undistort_right(cur_r)
 
         ages = f.ages[alive] + 1
@@ -554,32 +550,9 @@ class StereoTracker:
         stats.timings_ms['photometric'] += spent * 1e3
         return out, spent
 
-    def _start_refinement(self, img_from: np.ndarray, img_to: np.ndarray,
-                          pts_from: np.ndarray, pts_to: np.ndarray, stats: TrackerStats,
-                          stereo: bool = False) -> Callable[[np.ndarray], np.ndarray]:
-        """
-        Start the affine refinement of matches (``_refine``) ahead of the check that selects them.
-
-        Returns a function of the rows the check kept ((N,) bool) that returns their positions
-        ``pts_to[kept]``, refined. With a helper thread it refines every match there, next to
-        the caller's reverse KLT pass (the refinement releases the GIL, as OpenCV does); each
-        point is refined on its own, so the kept ones come out as if refined alone. Without
-        one, only the kept matches are refined, when asked.
-        """
-        if not (self.workers.overlaps and self.cfg.affine_refinement and len(pts_from)):
-            return lambda kept: self._refine(img_from, img_to, pts_from[kept], pts_to[kept],
-                                             stats, stereo)
-        job = self.workers.submit_local(self._refine, img_from, img_to, pts_from, pts_to, stats,
-                                        stereo)
-        return lambda kept: job.result()[kept]
-
     def _refine(self, img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
                 pts_to: np.ndarray, stats: TrackerStats, stereo: bool = False) -> np.ndarray:
-        """
-        Affine refinement of matches (raw pixels) when configured, timed as ``affine``.
-
-        Runs on the helper thread too (``_start_refinement``): ``stats`` takes its time only.
-        """
+        """Affine refinement of matches (raw pixels) when configured, timed as ``affine``."""
         cfg = self.cfg
         if not cfg.affine_refinement or not len(pts_from):
             return pts_to
