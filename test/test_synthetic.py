@@ -494,11 +494,22 @@ def klt(a: np.ndarray, b: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.n
     return nxt.reshape(-1, 2), st.ravel() == 1
 
 
+#: Digests of the exact-rig renders, per (OpenCV, NumPy) major version: their rounding differs
+#: (OpenCV 4 with NumPy 1 moves about a tenth of the pixels by 1-4 grey levels).
+EXACT_RIG_DIGESTS = {
+    ('5', '2'): {'demo': 'a43a7074748fabca', 'exposure': '1512b26873c0050e'},
+    ('4', '1'): {'demo': 'b19e18befe8fa9b1', 'exposure': 'c2abb8cdcea5a35b'},
+}
+
+
 def test_exact_rig_renders_the_same_images_as_before() -> None:
     """All rig and photometric fields at 0 leave the images bit for bit as they were."""
     import hashlib
-    expected = {'demo': 'a43a7074748fabca', 'exposure': '1512b26873c0050e'}
-    for name, digest in expected.items():
+    stack = (cv2.__version__.split('.')[0], np.__version__.split('.')[0])
+    if stack not in EXACT_RIG_DIGESTS:
+        pytest.fail(f'no digests recorded for OpenCV {cv2.__version__} with NumPy '
+                    f'{np.__version__}: check the renders and add theirs to EXACT_RIG_DIGESTS')
+    for name, digest in EXACT_RIG_DIGESTS[stack].items():
         renderer = StereoRenderer(SequenceSpec.preset(name, width=320, height=96, n_frames=6))
         h = hashlib.sha256()
         for index in (0, 5):

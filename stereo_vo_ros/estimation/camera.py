@@ -30,6 +30,19 @@ INPUT_KINDS = ('rectified', 'raw')
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
 
 
+def _undistort_points(pts: np.ndarray, K_raw: np.ndarray, D: np.ndarray,
+                      K_new: np.ndarray) -> np.ndarray:
+    """
+    ``cv2.undistortPoints`` with ``_UNDISTORT_CRITERIA``, on any OpenCV this package supports.
+
+    OpenCV 4 exposes the iteration criteria only as ``undistortPointsIter`` (which needs an
+    explicit R); OpenCV 5 folds them into ``undistortPoints``.
+    """
+    if hasattr(cv2, 'undistortPointsIter'):
+        return cv2.undistortPointsIter(pts, K_raw, D, np.eye(3), K_new, _UNDISTORT_CRITERIA)
+    return cv2.undistortPoints(pts, K_raw, D, R=None, P=K_new, criteria=_UNDISTORT_CRITERIA)
+
+
 @dataclass(frozen=True)
 class CameraModel:
     """
@@ -281,8 +294,7 @@ class StereoCalibration:
         if self.kind == 'rectified' or len(pts) == 0 or not np.any(cam.D):
             return pts.copy()
         # OpenCV's default 5 iterations leave ~0.1 px errors at strong distortion; iterate more.
-        out = cv2.undistortPoints(pts.reshape(-1, 1, 2), cam.K, cam.D, R=None, P=K,
-                                  criteria=_UNDISTORT_CRITERIA)
+        out = _undistort_points(pts.reshape(-1, 1, 2), cam.K, cam.D, K)
         return out.reshape(-1, 2).astype(np.float64)
 
     def distort_left(self, pts: np.ndarray) -> np.ndarray:

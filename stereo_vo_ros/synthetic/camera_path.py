@@ -8,6 +8,7 @@ built up and released smoothly in turns), its height and its arc length.
 from __future__ import annotations
 
 import numpy as np
+from scipy.integrate import trapezoid
 
 
 def _smootherstep(x: np.ndarray) -> np.ndarray:
@@ -45,8 +46,8 @@ def _turn_profile(x: np.ndarray) -> np.ndarray:
 
 
 #: Displacement of a 90-degree turn along either axis, per metre of turn length.
-_TURN_C = float(np.trapezoid(np.cos(0.5 * np.pi * _turn_profile(np.linspace(0, 1, 200001))),
-                             dx=1.0 / 200000))
+_TURN_C = float(trapezoid(np.cos(0.5 * np.pi * _turn_profile(np.linspace(0, 1, 200001))),
+                          dx=1.0 / 200000))
 
 
 class Trajectory:
