@@ -393,9 +393,9 @@ class RigConfig:
         'estimated.', dynamic=True)
     measure_every: int = _f(
         2, 'Measure the rig on every n-th pair with a motion estimate (the others only predict): '
-        'a measurement (a small bundle adjustment) costs about 1.5 ms at 1241x376 with 200 '
-        'features on this machine, the correction of every pair (with the row slide of pinned '
-        'matches) about 1 ms. Every third pair: rendered highway_rig seeds 0-7, 150 '
+        'a measurement (a small bundle adjustment) costs about 1 ms at 1241x376 with 200 '
+        'features on a two-core machine, the correction of every pair (with the row slide of '
+        'pinned matches) about 0.3 ms. Every third pair: rendered highway_rig seeds 0-7, 150 '
         'frames, mean t_rel 0.777 -> 0.908 %, urban_rig 0.152 -> 0.175 %.', 1, 1000,
         dynamic=True)
     min_points: int = _f(

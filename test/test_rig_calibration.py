@@ -17,6 +17,7 @@ from stereo_vo_ros.estimation.rig_calibration import (apply_homography, camera_i
                                                       refined_camera_infos, rig_jacobian,
                                                       RigCalibrator, right_homography,
                                                       row_coupling)
+from stereo_vo_ros.estimation.rig_measurement import initial_points, measure_pair
 from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
@@ -423,3 +424,84 @@ def test_row_coupling_predicts_the_slide_of_row_pinned_matches():
                                   row_coupling(img8.astype(np.float32), pts, 15, 2))
     edge = row_coupling(img8, np.array([[0.0, 0.0], [639.0, 239.0], [8.0, 8.0]]), 15, 2)
     assert np.all(np.isfinite(edge)) and edge[0] == edge[2]
+
+
+def _views(calib, pts, T_prev_cur, xi, theta):
+    """
+    Return the four views (N, 8) of points (a, b, rho) after motion T exp(xi), rig error theta.
+
+    Written from the model's definition (points on their previous left rays, the right camera's
+    projection, the error homography), not from ``measure_pair``'s derivatives.
+    """
+    X = np.column_stack([pts[:, :2], np.ones(len(pts))]) / pts[:, 2:3]
+    R = T_prev_cur[:3, :3] @ Rotation.from_rotvec(xi[3:]).as_matrix()
+    t = T_prev_cur[:3, 3] + T_prev_cur[:3, :3] @ xi[:3]
+    X_cur = (X - t) @ R
+    Hr = right_homography(calib.K_right, theta)
+    PL, PR = calib.projection_left(), calib.projection_right()
+    return np.hstack([project(PL, X), apply_homography(Hr, project(PR, X)), project(PL, X_cur),
+                      apply_homography(Hr, project(PR, X_cur))])
+
+
+def _reduced_information(calib, pts, T_prev_cur, z):
+    """Numerical J^T J and J^T r of the four views, points and motion eliminated."""
+    n = len(pts)
+
+    def residuals(p):
+        return (z - _views(calib, p[:3 * n].reshape(n, 3), T_prev_cur, p[3 * n:3 * n + 6],
+                           p[3 * n + 6:])).ravel()
+
+    p0 = np.concatenate([pts.ravel(), np.zeros(11)])
+    r0 = residuals(p0)
+    J = np.empty((len(r0), len(p0)))
+    for k in range(len(p0)):
+        step = 1e-7 * max(1.0, abs(p0[k]))
+        dp = np.zeros(len(p0))
+        dp[k] = step
+        J[:, k] = -(residuals(p0 + dp) - residuals(p0 - dp)) / (2 * step)
+    H, g = J.T @ J, J.T @ r0
+    o = slice(0, 3 * n + 6)
+    info = H[-5:, -5:] - H[-5:, o] @ np.linalg.solve(H[o, o], H[o, -5:])
+    grad = g[-5:] - H[-5:, o] @ np.linalg.solve(H[o, o], g[o])
+    return info, grad
+
+
+def _pair_measurement_config(**rig):
+    return Config().replace(**{f'rig.{k}': v for k, v in rig.items()}).rig
+
+
+def test_pair_measurement_is_the_reduced_bundle_adjustment():
+    """At its start point (no step, unit weights) it is the Schur complement onto the rig."""
+    calib, rng = kitti_calibration(), np.random.default_rng(3)
+    T = transform_from_velocity(FORWARD, DT)
+    corr = observe(calib, THETA, scene(rng, 40), T, rng, noise_px=0.1)
+    # The motion it starts from is a little off, so that the current views have residuals.
+    T_start = transform_from_velocity(FORWARD + np.array([0.02, -0.01, 0.05, 1e-3, 0, 5e-4]), DT)
+    cfg = _pair_measurement_config(iterations=0, huber_sigmas=100.0, outlier_sigmas=100.0)
+    m = measure_pair(corr, calib, calib, T_start, cfg)
+    assert m is not None and m.n_points == len(corr)
+    pts = initial_points(calib, corr.prev_left, corr.prev_right)
+    z = np.hstack([corr.prev_left, corr.prev_right, corr.cur_left, corr.cur_right])
+    info, grad = _reduced_information(calib, pts, T_start, z)
+    scale = m.sigma_px ** 2 * cfg.measurement_inflation
+    assert np.linalg.norm(m.information * scale - info) < 2e-3 * np.linalg.norm(info)
+    assert np.allclose(m.gradient * scale, grad, rtol=0.0, atol=2e-3 * np.abs(grad).max())
+    assert np.abs(np.linalg.solve(info, grad)).max() > 0.05  # the residuals say something
+
+
+def test_pair_measurement_steps_to_the_motion_that_fits():
+    """Exact views, a wrong start: after its steps nothing is left to explain by the rig."""
+    calib, rng = kitti_calibration(), np.random.default_rng(4)
+    T = transform_from_velocity(FORWARD, DT)
+    corr = observe(calib, np.zeros(5), scene(rng, 60), T, rng, noise_px=0.0)
+    T_start = transform_from_velocity(FORWARD + np.array([0.05, 0.02, -0.1, 0, 2e-3, 0]), DT)
+    cfg = _pair_measurement_config(iterations=3)
+    m = measure_pair(corr, calib, calib, T_start, cfg)
+    assert m is not None and m.n_points == len(corr)
+    increment = np.linalg.solve(m.information, m.gradient)
+    assert np.abs(increment).max() < 1e-6  # rad, focal ratio; px for the offset
+    pts = initial_points(calib, corr.prev_left, corr.prev_right)
+    z = np.hstack([corr.prev_left, corr.prev_right, corr.cur_left, corr.cur_right])
+    info, _ = _reduced_information(calib, pts, T, z)
+    scale = m.sigma_px ** 2 * cfg.measurement_inflation
+    assert np.linalg.norm(m.information * scale - info) < 1e-3 * np.linalg.norm(info)

@@ -324,48 +324,164 @@ def initial_points(calib: StereoCalibration, prev_left: np.ndarray, prev_right: 
     return np.column_stack([ray_l[:, 0], ray_l[:, 1], rho])
 
 
-def _project(K: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (N, 2) of directions q (N, 3) and d pixel / d q (N, 2, 3)."""
-    p = q @ K.T
-    inv_z = 1.0 / p[:, 2]
-    pix = p[:, :2] * inv_z[:, None]
-    D = np.empty((len(q), 2, 3))
-    D[:, 0, 0] = inv_z
-    D[:, 0, 1] = 0.0
-    D[:, 1, 0] = 0.0
-    D[:, 1, 1] = inv_z
-    D[:, :, 2] = -pix * inv_z[:, None]
-    return pix, D @ K
+_F8 = numba.types.float64
+_M2, _M3, _V1 = readonly(_F8, 2), readonly(_F8, 3), readonly(_F8, 1)
+_W1, _W2, _W3 = (numba.types.Array(_F8, d, 'C') for d in (1, 2, 3))
 
 
-def _cross_rows(D: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Rows of ``D @ [q]x``: each row (N, 2, 3) crossed with its point's q (N, 3)."""
-    out = np.empty_like(D)
-    q0, q1, q2 = q[:, None, 0], q[:, None, 1], q[:, None, 2]
-    out[:, :, 0] = D[:, :, 1] * q2 - D[:, :, 2] * q1
-    out[:, :, 1] = D[:, :, 2] * q0 - D[:, :, 0] * q2
-    out[:, :, 2] = D[:, :, 0] * q1 - D[:, :, 1] * q0
-    return out
+@kernel()
+def _project(K, q, pix, D):
+    """Pixels (2,) of a direction q (3,) into ``pix`` and d pixel / d q (2, 3) into ``D``."""
+    p0 = K[0, 0] * q[0] + K[0, 1] * q[1] + K[0, 2] * q[2]
+    p1 = K[1, 0] * q[0] + K[1, 1] * q[1] + K[1, 2] * q[2]
+    inv_z = 1.0 / (K[2, 0] * q[0] + K[2, 1] * q[1] + K[2, 2] * q[2])
+    pix[0], pix[1] = p0 * inv_z, p1 * inv_z
+    for r in range(2):
+        for c in range(3):
+            D[r, c] = (K[r, c] - pix[r] * K[2, c]) * inv_z
 
 
-def _inv3(M: np.ndarray) -> np.ndarray:
-    """Inverses (N, 3, 3) of symmetric positive definite 3x3 matrices (adjugate over det)."""
-    a, b, c = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
-    d, e, f = M[:, 1, 1], M[:, 1, 2], M[:, 2, 2]
-    A = d * f - e * e
-    B = c * e - b * f
-    C = b * e - c * d
-    det = a * A + b * B + c * C
-    if not np.all(np.abs(det) > 0):
-        raise np.linalg.LinAlgError('singular point block')
-    out = np.empty_like(M)
-    out[:, 0, 0] = A
-    out[:, 0, 1] = out[:, 1, 0] = B
-    out[:, 0, 2] = out[:, 2, 0] = C
-    out[:, 1, 1] = a * f - c * c
-    out[:, 1, 2] = out[:, 2, 1] = b * c - a * e
-    out[:, 2, 2] = a * d - b * b
-    return out / det[:, None, None]
+@kernel()
+def _motion_columns(D, q, rho, J, row):
+    """Write ``d pixel / d xi`` of rows ``row:row+2`` of ``J``: ``-rho D`` and ``D [q]x``."""
+    for r in range(2):
+        J[row + r, 3], J[row + r, 4], J[row + r, 5] = -rho * D[r, 0], -rho * D[r, 1], \
+            -rho * D[r, 2]
+        J[row + r, 6] = D[r, 1] * q[2] - D[r, 2] * q[1]
+        J[row + r, 7] = D[r, 2] * q[0] - D[r, 0] * q[2]
+        J[row + r, 8] = D[r, 0] * q[1] - D[r, 1] * q[0]
+
+
+@kernel(numba.types.void(_M2, _M2, _M2, _M2, _V1, _M2, _M2, _V1, _M2, _M2, _M2, _V1, _M2, _W2,
+                         _W3))
+def _residuals_jacobian(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1,
+                        R_rl1, res, J):
+    """
+    Residuals (N, 8) and Jacobian (N, 8, 14) of the four views of points (a, b, rho).
+
+    Columns: the point (a, b, rho), the motion increment xi = (v, w), the rig error; the rig
+    columns (right views) are constant and left as they are. ``R``, ``t``: the motion (pose of
+    the current left camera in the previous one); ``K_*``, ``R_rl*``, ``t_rl*``: the previous
+    (0) and current (1) calibrations. Residuals where ``mask`` is 0 are 0.
+    """
+    q0 = np.empty(3)
+    q = np.empty(3)
+    qr = np.empty(3)
+    pix = np.empty(2)
+    D = np.empty((2, 3))
+    DR = np.empty((2, 3))
+    Rt_t = np.empty(3)  # R^T t
+    for c in range(3):
+        Rt_t[c] = R[0, c] * t[0] + R[1, c] * t[1] + R[2, c] * t[2]
+    for i in range(pts.shape[0]):
+        a, b, rho = pts[i, 0], pts[i, 1], pts[i, 2]
+        Ji = J[i]
+        # Previous left: K (a, b, 1).
+        pix[0] = K_L0[0, 0] * a + K_L0[0, 1] * b + K_L0[0, 2]
+        pix[1] = K_L0[1, 0] * a + K_L0[1, 1] * b + K_L0[1, 2]
+        for r in range(2):
+            res[i, r] = z[i, r] - pix[r]
+            Ji[r, 0], Ji[r, 1], Ji[r, 2] = K_L0[r, 0], K_L0[r, 1], 0.0
+        # Previous right: R_rl (a, b, 1) + rho t_rl.
+        for c in range(3):
+            q0[c] = R_rl0[c, 0] * a + R_rl0[c, 1] * b + R_rl0[c, 2] + rho * t_rl0[c]
+        _project(K_R0, q0, pix, D)
+        for r in range(2):
+            res[i, 2 + r] = z[i, 2 + r] - pix[r]
+            for c in range(2):
+                Ji[2 + r, c] = D[r, 0] * R_rl0[0, c] + D[r, 1] * R_rl0[1, c] + \
+                    D[r, 2] * R_rl0[2, c]
+            Ji[2 + r, 2] = D[r, 0] * t_rl0[0] + D[r, 1] * t_rl0[1] + D[r, 2] * t_rl0[2]
+        # Current left: q = R^T ((a, b, 1) - rho t); d q / d (a, b) = R^T[:, :2],
+        # d q / d rho = -R^T t.
+        for c in range(3):
+            q[c] = R[0, c] * a + R[1, c] * b + R[2, c] - rho * Rt_t[c]
+        _project(K_L1, q, pix, D)
+        for r in range(2):
+            res[i, 4 + r] = z[i, 4 + r] - pix[r]
+            for c in range(2):
+                Ji[4 + r, c] = D[r, 0] * R[c, 0] + D[r, 1] * R[c, 1] + D[r, 2] * R[c, 2]
+            Ji[4 + r, 2] = -(D[r, 0] * Rt_t[0] + D[r, 1] * Rt_t[1] + D[r, 2] * Rt_t[2])
+        _motion_columns(D, q, rho, Ji, 4)
+        # Current right: R_rl q + rho t_rl.
+        for c in range(3):
+            qr[c] = R_rl1[c, 0] * q[0] + R_rl1[c, 1] * q[1] + R_rl1[c, 2] * q[2] + \
+                rho * t_rl1[c]
+        _project(K_R1, qr, pix, D)
+        for r in range(2):
+            res[i, 6 + r] = z[i, 6 + r] - pix[r]
+            for c in range(3):
+                DR[r, c] = D[r, 0] * R_rl1[0, c] + D[r, 1] * R_rl1[1, c] + D[r, 2] * R_rl1[2, c]
+            for c in range(2):
+                Ji[6 + r, c] = DR[r, 0] * R[c, 0] + DR[r, 1] * R[c, 1] + DR[r, 2] * R[c, 2]
+            Ji[6 + r, 2] = -(DR[r, 0] * Rt_t[0] + DR[r, 1] * Rt_t[1] + DR[r, 2] * Rt_t[2]) + \
+                D[r, 0] * t_rl1[0] + D[r, 1] * t_rl1[1] + D[r, 2] * t_rl1[2]
+        _motion_columns(DR, q, rho, Ji, 6)
+        for k in range(8):
+            if not mask[i, k] > 0:
+                res[i, k] = 0.0
+
+
+@kernel(numba.types.boolean(_M3, _M2, _M2, _W2, _W1, _W3, _W3, _W2))
+def _reduced_normal_equations(J, res, weights, S, s, Hpp_inv, Hpg, bp):
+    """
+    Write the normal equations of the global parameters (motion, rig), points eliminated.
+
+    ``J`` (N, 8, 3 + G), ``res`` and ``weights`` (N, 8); writes ``S`` (G, G) and ``s`` (G,)
+    (Schur complements), and per point ``Hpp_inv`` (N, 3, 3), ``Hpg`` (N, 3, G) and ``bp``
+    (N, 3). False when a point's 3x3 block is singular.
+    """
+    n, m, cols = J.shape
+    g = cols - 3
+    S[:, :] = 0.0
+    s[:] = 0.0
+    H = np.empty((3, cols))
+    G = np.empty((g, 3))
+    for i in range(n):
+        Ji, wi, ri = J[i], weights[i], res[i]
+        for a in range(3):
+            for c in range(cols):
+                acc = 0.0
+                for r in range(m):
+                    acc += wi[r] * Ji[r, a] * Ji[r, c]
+                H[a, c] = acc
+            acc = 0.0
+            for r in range(m):
+                acc += wi[r] * Ji[r, a] * ri[r]
+            bp[i, a] = acc
+        # Inverse of the symmetric point block (adjugate over determinant).
+        p, q, u = H[0, 0], H[0, 1], H[0, 2]
+        d, e, f = H[1, 1], H[1, 2], H[2, 2]
+        A, B, C = d * f - e * e, u * e - q * f, q * e - u * d
+        det = p * A + q * B + u * C
+        if not abs(det) > 0.0:
+            return False
+        Hi = Hpp_inv[i]
+        Hi[0, 0], Hi[0, 1], Hi[0, 2] = A / det, B / det, C / det
+        Hi[1, 0], Hi[1, 1], Hi[1, 2] = B / det, (p * f - u * u) / det, (q * u - p * e) / det
+        Hi[2, 0], Hi[2, 1], Hi[2, 2] = C / det, Hi[1, 2], (p * d - q * q) / det
+        for a in range(3):
+            for c in range(g):
+                Hpg[i, a, c] = H[a, 3 + c]
+        for c in range(g):
+            for a in range(3):
+                G[c, a] = H[0, 3 + c] * Hi[0, a] + H[1, 3 + c] * Hi[1, a] + \
+                    H[2, 3 + c] * Hi[2, a]
+        for c in range(g):
+            acc = 0.0
+            for r in range(m):
+                acc += wi[r] * Ji[r, 3 + c] * ri[r]
+            s[c] += acc - (G[c, 0] * bp[i, 0] + G[c, 1] * bp[i, 1] + G[c, 2] * bp[i, 2])
+            for c2 in range(c + 1):
+                acc = 0.0
+                for r in range(m):
+                    acc += wi[r] * Ji[r, 3 + c] * Ji[r, 3 + c2]
+                S[c, c2] += acc - (G[c, 0] * H[0, 3 + c2] + G[c, 1] * H[1, 3 + c2] +
+                                   G[c, 2] * H[2, 3 + c2])
+    for c in range(g):
+        for c2 in range(c):
+            S[c2, c] = S[c, c2]
+    return True
 
 
 def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
@@ -422,38 +538,18 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     R = np.asarray(T_prev_cur, np.float64)[:3, :3].copy()
     t = np.asarray(T_prev_cur, np.float64)[:3, 3].copy()
     n_glob = 6 + N_PARAMS
+    cams = [np.ascontiguousarray(a, np.float64) for a in (
+        K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1)]
     # Full Jacobian per point: 8 residuals x (3 point + 6 motion + 5 rig) parameters.
     J = np.zeros((n, 8, 3 + n_glob))
     J[:, 2:4, 3 + 6:] = rig_jacobian(K_R0, corr.prev_right[ok])
     J[:, 6:8, 3 + 6:] = rig_jacobian(K_R1, corr.cur_right[ok])
+    res = np.empty((n, 8))
+    S, s = np.empty((n_glob, n_glob)), np.empty(n_glob)
     weights = mask
     sigma = np.nan
     for it in range(cfg.iterations + 1):
-        a, b, rho = pts[:, 0], pts[:, 1], pts[:, 2]
-        ray = np.column_stack([a, b, np.ones(n)])
-        q1l = (ray - rho[:, None] * t) @ R  # R^T (ray - rho t), row-wise
-        pix0l = ray[:, :2] @ K_L0[:2, :2].T + K_L0[:2, 2]
-        pix0r, D0r = _project(K_R0, ray @ R_rl0.T + rho[:, None] * t_rl0)
-        pix1l, D1l = _project(K_L1, q1l)
-        pix1r, D1r = _project(K_R1, q1l @ R_rl1.T + rho[:, None] * t_rl1)
-        res = (z - np.concatenate([pix0l, pix0r, pix1l, pix1r], 1)) * (mask > 0)  # (n, 8)
-        # d pixel / d (a, b, rho): previous left, previous right, current left, current right.
-        J[:, 0:2, 0:2] = K_L0[:2, :2]
-        D0r_R = D0r @ R_rl0
-        J[:, 2:4, 0:2] = D0r_R[:, :, :2]
-        J[:, 2:4, 2] = D0r @ t_rl0
-        dq1l_ab = R.T[:, :2]  # (3, 2)
-        dq1l_rho = -(R.T @ t)
-        J[:, 4:6, 0:2] = D1l @ dq1l_ab
-        J[:, 4:6, 2] = D1l @ dq1l_rho
-        D1r_R = D1r @ R_rl1
-        J[:, 6:8, 0:2] = D1r_R @ dq1l_ab
-        J[:, 6:8, 2] = D1r_R @ dq1l_rho + D1r @ t_rl1
-        # d pixel / d xi of the current views: dq / dv = -rho I, dq / dw = [q]x.
-        J[:, 4:6, 3:6] = -rho[:, None, None] * D1l
-        J[:, 4:6, 6:9] = _cross_rows(D1l, q1l)
-        J[:, 6:8, 3:6] = -rho[:, None, None] * D1r_R
-        J[:, 6:8, 6:9] = _cross_rows(D1r_R, q1l)
+        _residuals_jacobian(pts, z, mask, R, t, *cams, np.ascontiguousarray(R_rl1), res, J)
         # Robust scale and weights (Huber); the first pass uses unit weights.
         absr = np.abs(res)
         if it == 0:  # the previous pair fixed the points: the current views carry the errors
@@ -474,18 +570,10 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
                     return None
             k = cfg.huber_sigmas * sigma
             weights = mask * np.minimum(1.0, k / np.maximum(absr, 1e-12))
-        WJ = J * weights[:, :, None]
-        WJpt = np.swapaxes(WJ[:, :, :3], 1, 2)  # (n, 3, 8)
-        Hp = WJpt @ J  # (n, 3, 14): point rows of the normal equations
-        bp = (WJpt @ res[:, :, None])[:, :, 0]  # (n, 3)
-        Jg = J[:, :, 3:].reshape(-1, n_glob)
-        WJg = WJ[:, :, 3:].reshape(-1, n_glob)
-        Hpp_inv = _inv3(Hp[:, :, :3])
-        Hpg = Hp[:, :, 3:]  # (n, 3, 11)
-        G = np.swapaxes(Hpg, 1, 2) @ Hpp_inv  # (n, 11, 3)
-        G_flat = np.swapaxes(G, 0, 1).reshape(n_glob, -1)  # (11, 3n)
-        S = WJg.T @ Jg - G_flat @ Hpg.reshape(-1, n_glob)
-        s = WJg.T @ res.reshape(-1) - G_flat @ bp.reshape(-1)
+        Hpp_inv, Hpg, bp = np.empty((n, 3, 3)), np.empty((n, 3, n_glob)), np.empty((n, 3))
+        if not _reduced_normal_equations(J, res, np.ascontiguousarray(weights), S, s, Hpp_inv,
+                                         Hpg, bp):
+            raise np.linalg.LinAlgError('singular point block')
         if it == cfg.iterations:
             break
         # Gauss-Newton step of points and motion; theta held (its columns left out).
