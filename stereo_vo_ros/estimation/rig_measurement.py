@@ -527,7 +527,8 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     K_L1, K_R1 = calib_cur.K_left, calib_cur.K_right
     R_rl0, t_rl0 = calib_prev.R_right_left, calib_prev.t_right_left
     R_rl1, t_rl1 = calib_cur.R_right_left, calib_cur.t_right_left
-    z = np.concatenate([corr.prev_left, corr.prev_right, corr.cur_left, corr.cur_right], 1)
+    z = np.concatenate([corr.prev_left, corr.prev_right, corr.cur_left, corr.cur_right], 1
+                       ).astype(np.float64)
     pts = initial_points(calib_prev, corr.prev_left, corr.prev_right)
     ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(z), axis=1)
     n = int(np.count_nonzero(ok))
@@ -539,7 +540,7 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     t = np.asarray(T_prev_cur, np.float64)[:3, 3].copy()
     n_glob = 6 + N_PARAMS
     cams = [np.ascontiguousarray(a, np.float64) for a in (
-        K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1)]
+        K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_rl1)]
     # Full Jacobian per point: 8 residuals x (3 point + 6 motion + 5 rig) parameters.
     J = np.zeros((n, 8, 3 + n_glob))
     J[:, 2:4, 3 + 6:] = rig_jacobian(K_R0, corr.prev_right[ok])
@@ -549,7 +550,7 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     weights = mask
     sigma = np.nan
     for it in range(cfg.iterations + 1):
-        _residuals_jacobian(pts, z, mask, R, t, *cams, np.ascontiguousarray(R_rl1), res, J)
+        _residuals_jacobian(pts, z, mask, R, t, *cams, res, J)
         # Robust scale and weights (Huber); the first pass uses unit weights.
         absr = np.abs(res)
         if it == 0:  # the previous pair fixed the points: the current views carry the errors
