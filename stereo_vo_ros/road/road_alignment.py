@@ -31,11 +31,12 @@ level's full image), on the plane between
 optical axis. Frames: the previous / current left camera optical frames (x right, y down,
 z forward), metres; ``T_prev_cur`` is the pose of the current left camera in the previous one.
 
-The time goes to many small array operations (a few thousand pixels each), so the arrays are
-laid out for them: points and Jacobians one row per coordinate or parameter (a (3, N) product
-takes a sixth of the time of (N, 3) @ (3, 3)), 3x3 and 5x5 solves through OpenCV, the lattice
-computed once per level geometry, and a pixel that leaves the view is dropped for the rest of
-the level instead of masking every array at every iteration.
+The per-pixel work of a Gauss-Newton step (moving and projecting the road points, the ESM
+gradients, the Cauchy weights, the normal equations) runs in compiled kernels
+(:mod:`~stereo_vo_ros.jit`); the images are sampled with ``cv2.remap`` (the three interleaved
+channels of a level in one call). Points are stored one row per coordinate ((3, N)), small
+solves go through OpenCV, the lattice is computed once per level geometry, and a pixel that
+leaves the view is dropped for the rest of the level.
 """
 
 from __future__ import annotations
@@ -44,11 +45,13 @@ from dataclasses import dataclass
 import math
 
 import cv2
+import numba
 import numpy as np
 
 from ..config import RansacConfig, RoadConfig
 from ..estimation.camera import StereoCalibration
 from ..estimation.motion import velocity_from_transform
+from ..jit import kernel, readonly
 
 #: The plane lies at least this far below the optical centre (m).
 MIN_HEIGHT_M = 0.1
@@ -198,20 +201,6 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out.reshape((m,) + img.shape[2:])[:n]
 
 
-def _weights(r: np.ndarray) -> np.ndarray:
-    """
-    Return the Cauchy weights of residuals r (grey levels).
-
-    ``1 / (1 + (r / c)^2)`` with c ``CAUCHY_SCALES`` robust scales (:func:`_scale`); 0 for
-    occluders (above ``MAX_DIFFERENCE``).
-    """
-    c2 = (CAUCHY_SCALES * _scale(r)) ** 2
-    r2 = r * r
-    w = c2 / (c2 + r2)
-    w[r2 >= MAX_DIFFERENCE ** 2] = 0.0
-    return w
-
-
 def _scale(r: np.ndarray) -> float:
     """
     Return the robust scale of residuals r (grey levels).
@@ -242,6 +231,161 @@ def _motion_jacobian(gx: np.ndarray, gy: np.ndarray, xn: np.ndarray, yn: np.ndar
                lambda: c * xn + a, lambda: b * xn - a * yn)
     for j, i in enumerate(free):
         out[j] = columns[i]()
+
+
+_F8, _F4 = numba.types.float64, numba.types.float32
+_M2, _V1 = readonly(_F8, 2), readonly(_F8, 1)
+_S2 = readonly(_F4, 2)
+_W1, _W2 = numba.types.Array(_F8, 1, 'C'), numba.types.Array(_F8, 2, 'C')
+
+
+_B1 = numba.types.Array(numba.types.boolean, 1, 'C')
+
+
+@kernel(numba.types.int64(_M2, _M2, _F8, _F8, _F8, _F8, _F8, _F8, _F8, _W2, _B1))
+def _project_road(X, T, f, cx, cy, min_z, u_max, v_min, v_max, out, alive):
+    """
+    Move road points into the current camera and project them; return how many stay alive.
+
+    ``X`` (3, N) points (m), ``T`` (4, 4) the transform into the current frame; writes
+    ``out`` (5, N): u, v (pixels of the level), x / z, y / z and 1 / z. A point stays
+    ``alive`` (N,) while it is farther than ``min_z`` and its pixel lies inside
+    ``(0, u_max) x (v_min, v_max)``; one that is not gets u = v = -1 (sampled outside).
+    """
+    count = 0
+    for i in range(X.shape[1]):
+        if not alive[i]:
+            out[0, i] = out[1, i] = -1.0
+            continue
+        x, y, z = X[0, i], X[1, i], X[2, i]
+        xc = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        yc = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        iz = 1.0 / zc
+        xn, yn = xc * iz, yc * iz
+        u, v = f * xn + cx, f * yn + cy
+        if zc > min_z and u > 0.0 and u < u_max and v > v_min and v < v_max:
+            out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = u, v, xn, yn, iz
+            count += 1
+        else:
+            alive[i] = False
+            out[0, i] = out[1, i] = -1.0
+    return count
+
+
+@kernel(numba.types.int64(_S2, _S2, readonly(numba.types.boolean, 1), _F8, _F8, _W1, _W1))
+def _road_residuals(cur_s, tmpl, alive, gain, offset, r, r_alive):
+    """
+    Write the residuals ``g I_cur + o - I_prev`` (grey levels); return the alive ones' number.
+
+    All of them go to ``r`` (N,), those of the alive pixels, in order, to ``r_alive``.
+    """
+    n = 0
+    for i in range(len(r)):
+        r[i] = gain * cur_s[i, 0] + offset - tmpl[i, 0]
+        if alive[i]:
+            r_alive[n] = r[i]
+            n += 1
+    return n
+
+
+@kernel(numba.types.boolean(_S2, _S2, _V1, _V1, _M2, _V1, readonly(numba.types.boolean, 1),
+                            _M2, _F8, _F8, _F8, _F8, readonly(numba.types.int64, 1), _W2, _W1))
+def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, free, A, b):
+    """
+    Write the normal equations ``A x = b`` of a Gauss-Newton step of the motion (``align``).
+
+    ``cur_s`` (N, 3) the current image's value and gradients at the projected pixels, ``tmpl``
+    (N, 3) the template's, ``us, vs`` (N,) the template pixels, ``proj`` (5, N) from
+    ``_project_road``, ``r`` (N,) the residuals, ``alive`` (N,) the pixels compared, ``G``
+    the inverse plane warp (current -> previous pixels), ``c2`` the squared Cauchy scale,
+    ``max_r2`` the squared occluder limit, ``free`` the state components refined. Rows of J:
+    the components of ``free``, then gain and offset; weights ``c2 / (c2 + r^2)``, 0 from
+    ``max_r2`` on. False when a gradient is not finite.
+    """
+    k = len(free)
+    m = k + 2
+    A[:, :] = 0.0
+    b[:] = 0.0
+    row = np.empty(m)
+    for i in range(len(r)):
+        if not alive[i]:
+            continue
+        u, v, xn, yn, iz = proj[0, i], proj[1, i], proj[2, i], proj[3, i], proj[4, i]
+        # ESM: the mean of the current gradient and the template's carried by G.
+        s = 0.5 / (G[2, 0] * u + G[2, 1] * v + G[2, 2])
+        tu, tv = tmpl[i, 1] * s, tmpl[i, 2] * s
+        gx = 0.5 * gain * cur_s[i, 1] + tu * (G[0, 0] - us[i] * G[2, 0]) \
+            + tv * (G[1, 0] - vs[i] * G[2, 0])
+        gy = 0.5 * gain * cur_s[i, 2] + tu * (G[0, 1] - us[i] * G[2, 1]) \
+            + tv * (G[1, 1] - vs[i] * G[2, 1])
+        if not (math.isfinite(gx) and math.isfinite(gy)):
+            return False
+        ri = r[i]
+        r2 = ri * ri
+        if r2 >= max_r2:
+            continue  # an occluder weighs nothing
+        w = c2 / (c2 + r2)
+        ga, gb = f * gx, f * gy
+        c = ga * xn + gb * yn
+        for j in range(k):
+            comp = free[j]
+            if comp == 0:
+                row[j] = ga * iz
+            elif comp == 1:
+                row[j] = gb * iz
+            elif comp == 2:
+                row[j] = -c * iz
+            elif comp == 3:
+                row[j] = -(c * yn + gb)
+            elif comp == 4:
+                row[j] = c * xn + ga
+            else:
+                row[j] = gb * xn - ga * yn
+        row[k] = cur_s[i, 0]
+        row[k + 1] = 1.0
+        for a in range(m):
+            wa = w * row[a]
+            b[a] -= wa * ri
+            for c2_ in range(a + 1):
+                A[a, c2_] += wa * row[c2_]
+    for a in range(m):
+        for c2_ in range(a):
+            A[c2_, a] = A[a, c2_]
+    return True
+
+
+@kernel(numba.types.void(_S2, _M2, _V1, _F8, _F8, _F8, _W2, _W1))
+def _plane_system(sampled, ray, r, fb_gain, c2, max_r2, A, b):
+    """
+    Write the normal equations ``A x = b`` of a Gauss-Newton step of the plane.
+
+    ``sampled`` (N, 2) the right image's value and x gradient at the matches, ``ray`` (3, N)
+    the left rays (z = 1), ``r`` (N,) the stereo residuals, ``fb_gain`` focal length times
+    baseline times the right camera's gain, ``c2`` the squared Cauchy scale, ``max_r2`` the
+    squared occluder limit. Rows of J: the plane's p = n / d, then gain and offset; weights as
+    in ``_motion_system``.
+    """
+    A[:, :] = 0.0
+    b[:] = 0.0
+    row = np.empty(5)
+    for i in range(len(r)):
+        ri = r[i]
+        r2 = ri * ri
+        if r2 >= max_r2:
+            continue  # an occluder weighs nothing
+        w = c2 / (c2 + r2)
+        g = -fb_gain * sampled[i, 1]
+        row[0], row[1], row[2] = g * ray[0, i], g * ray[1, i], g * ray[2, i]
+        row[3], row[4] = sampled[i, 0], 1.0
+        for a in range(5):
+            wa = w * row[a]
+            b[a] -= wa * ri
+            for c in range(a + 1):
+                A[a, c] += wa * row[c]
+    for a in range(5):
+        for c in range(a):
+            A[c, a] = A[a, c]
 
 
 def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
@@ -403,7 +547,7 @@ class RoadAligner:
             us, vs, X = self._road_pixels(level, calib, RoadPlane(p / norm, 1.0 / norm))
             if len(us) < self.cfg.min_pixels * level.scale ** 2:
                 return None
-            ray = X / X[2]  # (3, N), z = 1
+            ray = np.ascontiguousarray(X / X[2])  # (3, N), z = 1
             tmpl = _sample(level.left_grad, us, vs - level.row0)  # value, d/du, d/dv
             ref = tmpl[:, 0]
             grids.insert(0, (level, fb, us, vs, ray, tmpl))
@@ -412,13 +556,11 @@ class RoadAligner:
                                                         offset)
                 if len(r) < self.cfg.min_pixels * level.scale ** 2:
                     return None
-                ray_ok = ray if ok is None else ray[:, ok]
-                J = np.empty((5, len(r)))  # one row per parameter
-                J[:3] = (-fb * gain) * sampled[:, 1] * ray_ok
-                J[3] = sampled[:, 0]
-                J[4] = 1.0
-                Jw = J * _weights(r)
-                step = _solve(Jw @ J.T, -(Jw @ r))
+                ray_ok = ray if ok is None else np.ascontiguousarray(ray[:, ok])
+                A, b = np.empty((5, 5)), np.empty(5)
+                _plane_system(sampled, ray_ok, r.astype(np.float64), fb * float(gain),
+                              (CAUCHY_SCALES * _scale(r)) ** 2, MAX_DIFFERENCE ** 2, A, b)
+                step = _solve(A, b)
                 if step is None:
                     return None
                 p = p + step[:3]
@@ -497,6 +639,7 @@ class RoadAligner:
         """
         free, measured = MOTION_COMPONENTS[self.cfg.motion]
         k = len(free)
+        free_idx = np.asarray(free, np.int64)
         T_cp = np.linalg.inv(T_prev_cur)  # maps previous-frame points into the current frame
         gain, offset = 1.0, 0.0
         for index in reversed(range(len(prev.levels))):
@@ -515,23 +658,20 @@ class RoadAligner:
             if tmpl is None:
                 tmpl = _sample(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
             iterations = self.cfg.motion_iterations if index == 0 else self.cfg.coarse_iterations
+            h, w = lc.left.shape
+            X = np.ascontiguousarray(X, np.float64)
+            # A pixel that leaves the view is dropped for the rest of the level.
+            n = len(us)
+            alive, proj, r, r_alive = np.ones(n, bool), np.empty((5, n)), np.empty(n), \
+                np.empty(n)
             for _ in range(iterations):
-                Xc = T_cp[:3, :3] @ X + T_cp[:3, 3:]
-                with np.errstate(divide='ignore', invalid='ignore'):
-                    iz = 1.0 / Xc[2]
-                xn, yn = Xc[0] * iz, Xc[1] * iz
-                u, v = f * xn + cx, f * yn + cy
-                ok = (Xc[2] > self.cfg.min_depth_m / 2) & lc.inside(u, v)
-                n_ok = np.count_nonzero(ok)
-                if n_ok < len(ok):
-                    # A pixel that leaves the view is dropped for the rest of the level.
-                    if n_ok < need:
-                        return None
-                    u, v, xn, yn, iz = u[ok], v[ok], xn[ok], yn[ok], iz[ok]
-                    us, vs, X, tmpl = us[ok], vs[ok], X[:, ok], tmpl[ok]
-                cur_s = _sample(lc.left_grad, u, v - lc.row0)
+                n_ok = _project_road(X, T_cp, f, cx, cy, self.cfg.min_depth_m / 2, w - 1.0,
+                                     float(lc.row0), lc.row0 + h - 1.0, proj, alive)
+                if n_ok < need:
+                    return None
+                cur_s = _sample(lc.left_grad, proj[0], proj[1] - lc.row0)
                 # The exposure may change between the pairs: r = g I_cur + o - I_prev.
-                r = gain * cur_s[:, 0] + offset - tmpl[:, 0]
+                n_r = _road_residuals(cur_s, tmpl, alive, float(gain), float(offset), r, r_alive)
                 # ESM (Benhimane & Malis): the mean of the current image's gradient and the
                 # template's, carried into current pixels by the Jacobian of the inverse plane
                 # warp G (current -> previous pixels). The current image alone (forward
@@ -539,22 +679,12 @@ class RoadAligner:
                 # road larger and sharper than the template.
                 G = K @ cv2.invert(T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal)
                                    / plane.d)[1] @ K_inv
-                with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-                    s = 0.5 / (G[2, 0] * u + G[2, 1] * v + G[2, 2])
-                    tu, tv = tmpl[:, 1] * s, tmpl[:, 2] * s
-                    gx = 0.5 * gain * cur_s[:, 1] + tu * (G[0, 0] - us * G[2, 0]) \
-                        + tv * (G[1, 0] - vs * G[2, 0])
-                    gy = 0.5 * gain * cur_s[:, 2] + tu * (G[0, 1] - us * G[2, 1]) \
-                        + tv * (G[1, 1] - vs * G[2, 1])
-                if not np.isfinite(gx.sum() + gy.sum()):
+                A, b = np.empty((k + 2, k + 2)), np.empty(k + 2)
+                if not _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, float(gain), f,
+                                      (CAUCHY_SCALES * _scale(r_alive[:n_r])) ** 2,
+                                      MAX_DIFFERENCE ** 2, free_idx, A, b):
                     return None
-                J = np.empty((k + 2, len(r)))  # one row per parameter
-                _motion_jacobian(gx, gy, xn, yn, iz, f, free, J)
-                J[k] = cur_s[:, 0]
-                J[k + 1] = 1.0
-                Jw = J * _weights(r)
-                A = Jw @ J.T
-                step = _solve(A, -(Jw @ r))
+                step = _solve(A, b)
                 if step is None:
                     return None
                 delta = np.zeros(6)
@@ -562,6 +692,7 @@ class RoadAligner:
                 T_cp = _exp_se3(delta) @ T_cp
                 gain, offset = gain + step[k], offset + step[k + 1]
         # RMS image motion of the road pixels in the last step (input pixels).
+        xn, yn, iz = proj[2:, alive]
         one, zero = np.ones_like(xn), np.zeros_like(xn)
         Ju, Jv = np.empty((k, len(xn))), np.empty((k, len(xn)))
         _motion_jacobian(one, zero, xn, yn, iz, f, free, Ju)
@@ -569,7 +700,7 @@ class RoadAligner:
         moved = float(np.sqrt(np.mean((step[:k] @ Ju) ** 2 + (step[:k] @ Jv) ** 2))) / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
             return None
-        scale = _scale(r)
+        scale = _scale(r_alive[:n_r])
         try:
             # The brightness parameters are marginalised: the motion block of the inverse.
             cov_free = np.linalg.inv(A)[:k, :k] * scale ** 2 * self.cfg.covariance_inflation
@@ -585,4 +716,4 @@ class RoadAligner:
                 / JACOBIAN_STEP
         # Only the rows and columns of ``measured`` are meant to be fused.
         cov = Jy @ cov_free @ Jy.T
-        return RoadMotion(T, y, 0.5 * (cov + cov.T), measured, int(np.count_nonzero(ok)), scale)
+        return RoadMotion(T, y, 0.5 * (cov + cov.T), measured, n_ok, scale)
