@@ -24,7 +24,7 @@ setup(
         'numpy>=1.24',
         'scipy>=1.10',
         'numba>=0.58',
-        'opencv-python-headless>=4.8',
+        'opencv-python-headless>=4.6',
         'PyYAML>=6.0',
         'rosbags>=0.10',
         'matplotlib>=3.6',
