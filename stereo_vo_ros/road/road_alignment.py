@@ -347,11 +347,11 @@ def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, 
         for a in range(m):
             wa = w * row[a]
             b[a] -= wa * ri
-            for c2_ in range(a + 1):
-                A[a, c2_] += wa * row[c2_]
+            for col in range(a + 1):
+                A[a, col] += wa * row[col]
     for a in range(m):
-        for c2_ in range(a):
-            A[c2_, a] = A[a, c2_]
+        for col in range(a):
+            A[col, a] = A[a, col]
     return True
 
 
@@ -640,7 +640,8 @@ class RoadAligner:
         free, measured = MOTION_COMPONENTS[self.cfg.motion]
         k = len(free)
         free_idx = np.asarray(free, np.int64)
-        T_cp = np.linalg.inv(T_prev_cur)  # maps previous-frame points into the current frame
+        # Maps previous-frame points into the current frame.
+        T_cp = np.linalg.inv(np.asarray(T_prev_cur, np.float64))
         gain, offset = 1.0, 0.0
         for index in reversed(range(len(prev.levels))):
             lp, lc = prev.levels[index], cur.levels[index]
