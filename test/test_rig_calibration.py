@@ -382,15 +382,7 @@ def test_run_writes_the_estimate_and_the_refined_calibration(tmp_path):
 def test_converges_on_raw_input():
     """Raw input: the error is estimated in the right camera's own ideal pixels."""
     rng = np.random.default_rng(8)
-    K = np.array([[700.0, 0.0, 610.0], [0.0, 700.0, 190.0], [0.0, 0.0, 1.0]])
-    R_left = Rotation.from_euler('xyz', [0.3, -0.8, 0.2], degrees=True).as_matrix()
-    R_right = Rotation.from_euler('xyz', [-0.2, 0.5, -0.1], degrees=True).as_matrix()
-    P0 = np.hstack([K, np.zeros((3, 1))])
-    P1 = P0.copy()
-    P1[0, 3] = -700.0 * BASELINE
-    info = [{'k': K.ravel(), 'd': np.zeros(5), 'r': R.ravel(), 'p': P.ravel(), 'width': W,
-             'height': H} for R, P in ((R_left, P0), (R_right, P1))]
-    calib = StereoCalibration.from_camera_info(*info, kind='raw')
+    calib = _raw_calibrations()[0]
     assert not np.allclose(calib.R_right_left, np.eye(3))
     rig = RigCalibrator(EVERY_PAIR.rig)
     run_filter(rig, calib, THETA, 120, rng)

@@ -215,31 +215,63 @@ def _scale(r: np.ndarray) -> float:
     return max(1.4826 * float(np.partition(a, a.size // 2)[a.size // 2]), MIN_SCALE)
 
 
-def _motion_jacobian(gx: np.ndarray, gy: np.ndarray, xn: np.ndarray, yn: np.ndarray,
-                     iz: np.ndarray, f: float, free: list, out: np.ndarray) -> None:
-    """
-    Write the derivatives of an image's values at points into the rows ``out[:len(free)]``.
-
-    The points are ``X' = (xn, yn, 1) / iz`` (current camera frame), perturbed as
-    ``X' -> X' + dv + dw x X'``; the rows are the components ``free`` of (dv, dw). ``gx, gy``
-    (N,) are the image gradient at the points' pixels (grey levels per pixel); with
-    ``gx = 1, gy = 0`` (``0, 1``) the rows are the derivatives of the pixel's u (v).
-    """
-    a, b = f * gx, f * gy
-    c = a * xn + b * yn
-    columns = (lambda: a * iz, lambda: b * iz, lambda: -c * iz, lambda: -(c * yn + b),
-               lambda: c * xn + a, lambda: b * xn - a * yn)
-    for j, i in enumerate(free):
-        out[j] = columns[i]()
-
-
 _F8, _F4 = numba.types.float64, numba.types.float32
 _M2, _V1 = readonly(_F8, 2), readonly(_F8, 1)
 _S2 = readonly(_F4, 2)
 _W1, _W2 = numba.types.Array(_F8, 1, 'C'), numba.types.Array(_F8, 2, 'C')
-
-
 _B1 = numba.types.Array(numba.types.boolean, 1, 'C')
+
+
+@kernel()
+def _motion_row(ga, gb, xn, yn, iz, free, row):
+    """
+    Write the derivatives of an image value by the motion components ``free`` into ``row``.
+
+    The point ``X' = (xn, yn, 1) / iz`` (current camera frame) is perturbed as
+    ``X' -> X' + dv + dw x X'``; ``ga, gb`` are the image gradient times the focal length.
+    With ``(ga, gb) = (f, 0)`` (``(0, f)``) the row is the derivative of the pixel's u (v).
+    """
+    c = ga * xn + gb * yn
+    for j in range(len(free)):
+        comp = free[j]
+        if comp == 0:
+            row[j] = ga * iz
+        elif comp == 1:
+            row[j] = gb * iz
+        elif comp == 2:
+            row[j] = -c * iz
+        elif comp == 3:
+            row[j] = -(c * yn + gb)
+        elif comp == 4:
+            row[j] = c * xn + ga
+        else:
+            row[j] = gb * xn - ga * yn
+
+
+@kernel()
+def _accumulate(row, ri, c2, max_r2, A, b):
+    """
+    Add a residual ``ri`` with Jacobian ``row`` to the lower triangle of ``A`` and to ``b``.
+
+    Cauchy weight ``c2 / (c2 + ri^2)``; nothing from ``max_r2`` on (an occluder).
+    """
+    r2 = ri * ri
+    if r2 >= max_r2:
+        return
+    w = c2 / (c2 + r2)
+    for a in range(len(row)):
+        wa = w * row[a]
+        b[a] -= wa * ri
+        for col in range(a + 1):
+            A[a, col] += wa * row[col]
+
+
+@kernel()
+def _mirror(A):
+    """Copy the lower triangle of the square ``A`` to its upper triangle."""
+    for a in range(A.shape[0]):
+        for col in range(a):
+            A[col, a] = A[a, col]
 
 
 @kernel(numba.types.int64(_M2, _M2, _F8, _F8, _F8, _F8, _F8, _F8, _F8, _W2, _B1))
@@ -300,14 +332,13 @@ def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, 
     ``_project_road``, ``r`` (N,) the residuals, ``alive`` (N,) the pixels compared, ``G``
     the inverse plane warp (current -> previous pixels), ``c2`` the squared Cauchy scale,
     ``max_r2`` the squared occluder limit, ``free`` the state components refined. Rows of J:
-    the components of ``free``, then gain and offset; weights ``c2 / (c2 + r^2)``, 0 from
-    ``max_r2`` on. False when a gradient is not finite.
+    the components of ``free`` (``_motion_row``), then gain and offset; weights as
+    ``_accumulate`` gives them. False when a gradient is not finite.
     """
     k = len(free)
-    m = k + 2
     A[:, :] = 0.0
     b[:] = 0.0
-    row = np.empty(m)
+    row = np.empty(k + 2)
     for i in range(len(r)):
         if not alive[i]:
             continue
@@ -321,37 +352,11 @@ def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, 
             + tv * (G[1, 1] - vs[i] * G[2, 1])
         if not (math.isfinite(gx) and math.isfinite(gy)):
             return False
-        ri = r[i]
-        r2 = ri * ri
-        if r2 >= max_r2:
-            continue  # an occluder weighs nothing
-        w = c2 / (c2 + r2)
-        ga, gb = f * gx, f * gy
-        c = ga * xn + gb * yn
-        for j in range(k):
-            comp = free[j]
-            if comp == 0:
-                row[j] = ga * iz
-            elif comp == 1:
-                row[j] = gb * iz
-            elif comp == 2:
-                row[j] = -c * iz
-            elif comp == 3:
-                row[j] = -(c * yn + gb)
-            elif comp == 4:
-                row[j] = c * xn + ga
-            else:
-                row[j] = gb * xn - ga * yn
+        _motion_row(f * gx, f * gy, xn, yn, iz, free, row)
         row[k] = cur_s[i, 0]
         row[k + 1] = 1.0
-        for a in range(m):
-            wa = w * row[a]
-            b[a] -= wa * ri
-            for col in range(a + 1):
-                A[a, col] += wa * row[col]
-    for a in range(m):
-        for col in range(a):
-            A[col, a] = A[a, col]
+        _accumulate(row, r[i], c2, max_r2, A, b)
+    _mirror(A)
     return True
 
 
@@ -364,28 +369,36 @@ def _plane_system(sampled, ray, r, fb_gain, c2, max_r2, A, b):
     the left rays (z = 1), ``r`` (N,) the stereo residuals, ``fb_gain`` focal length times
     baseline times the right camera's gain, ``c2`` the squared Cauchy scale, ``max_r2`` the
     squared occluder limit. Rows of J: the plane's p = n / d, then gain and offset; weights as
-    in ``_motion_system``.
+    ``_accumulate`` gives them.
     """
     A[:, :] = 0.0
     b[:] = 0.0
     row = np.empty(5)
     for i in range(len(r)):
-        ri = r[i]
-        r2 = ri * ri
-        if r2 >= max_r2:
-            continue  # an occluder weighs nothing
-        w = c2 / (c2 + r2)
         g = -fb_gain * sampled[i, 1]
         row[0], row[1], row[2] = g * ray[0, i], g * ray[1, i], g * ray[2, i]
         row[3], row[4] = sampled[i, 0], 1.0
-        for a in range(5):
-            wa = w * row[a]
-            b[a] -= wa * ri
-            for c in range(a + 1):
-                A[a, c] += wa * row[c]
-    for a in range(5):
-        for c in range(a):
-            A[c, a] = A[a, c]
+        _accumulate(row, r[i], c2, max_r2, A, b)
+    _mirror(A)
+
+
+@kernel(_F8(_M2, readonly(numba.types.boolean, 1), _F8, readonly(numba.types.int64, 1), _V1))
+def _moved_rms(proj, alive, f, free, step):
+    """RMS image motion (pixels of the level) of the alive pixels by a step of ``free``."""
+    row = np.empty(len(free))
+    total, n = 0.0, 0
+    for i in range(proj.shape[1]):
+        if not alive[i]:
+            continue
+        for axis in range(2):
+            _motion_row(f if axis == 0 else 0.0, f if axis == 1 else 0.0, proj[2, i],
+                        proj[3, i], proj[4, i], free, row)
+            d = 0.0
+            for j in range(len(free)):
+                d += step[j] * row[j]
+            total += d * d
+        n += 1
+    return math.sqrt(total / n) if n else math.nan
 
 
 def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
@@ -681,9 +694,10 @@ class RoadAligner:
                 G = K @ cv2.invert(T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal)
                                    / plane.d)[1] @ K_inv
                 A, b = np.empty((k + 2, k + 2)), np.empty(k + 2)
+                scale = _scale(r_alive[:n_r])
                 if not _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, float(gain), f,
-                                      (CAUCHY_SCALES * _scale(r_alive[:n_r])) ** 2,
-                                      MAX_DIFFERENCE ** 2, free_idx, A, b):
+                                      (CAUCHY_SCALES * scale) ** 2, MAX_DIFFERENCE ** 2,
+                                      free_idx, A, b):
                     return None
                 step = _solve(A, b)
                 if step is None:
@@ -693,15 +707,9 @@ class RoadAligner:
                 T_cp = _exp_se3(delta) @ T_cp
                 gain, offset = gain + step[k], offset + step[k + 1]
         # RMS image motion of the road pixels in the last step (input pixels).
-        xn, yn, iz = proj[2:, alive]
-        one, zero = np.ones_like(xn), np.zeros_like(xn)
-        Ju, Jv = np.empty((k, len(xn))), np.empty((k, len(xn)))
-        _motion_jacobian(one, zero, xn, yn, iz, f, free, Ju)
-        _motion_jacobian(zero, one, xn, yn, iz, f, free, Jv)
-        moved = float(np.sqrt(np.mean((step[:k] @ Ju) ** 2 + (step[:k] @ Jv) ** 2))) / lp.scale
+        moved = _moved_rms(proj, alive, f, free_idx, step[:k].astype(np.float64)) / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
             return None
-        scale = _scale(r_alive[:n_r])
         try:
             # The brightness parameters are marginalised: the motion block of the inverse.
             cov_free = np.linalg.inv(A)[:k, :k] * scale ** 2 * self.cfg.covariance_inflation
