@@ -195,7 +195,8 @@ class Harness:
 
         rclpy's executor builds its wait set from entities that another thread may be
         destroying; destroying them (publishers, subscriptions, clients, nodes) while it
-        stands still avoids that race.
+        stands still avoids that race. The callbacks it already handed to its threads (which
+        take their message or request there) finish first.
         """
         with self._gate:
             self._pauses += 1
@@ -203,11 +204,19 @@ class Harness:
         try:
             with self._gate:
                 self._gate.wait_for(lambda: not self._in_spin)
+            self._callbacks_done()
             yield
         finally:
             with self._gate:
                 self._pauses -= 1
                 self._gate.notify_all()
+
+    def _callbacks_done(self, timeout_s: float = 5.0) -> None:
+        """Wait for the callbacks the executor's threads still run (rclpy's ``_futures``)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and any(
+                not task.done() for task in list(getattr(self.executor, '_futures', ()))):
+            time.sleep(0.001)
 
     @property
     def spinning(self) -> bool:
