@@ -204,19 +204,14 @@ class Harness:
         try:
             with self._gate:
                 self._gate.wait_for(lambda: not self._in_spin)
-            self._callbacks_done()
+            # Callbacks the executor handed to its threads (rclpy keeps them in ``_futures``).
+            self.wait_for(lambda: all(task.done() for task in
+                                      list(getattr(self.executor, '_futures', ()))), 5.0)
             yield
         finally:
             with self._gate:
                 self._pauses -= 1
                 self._gate.notify_all()
-
-    def _callbacks_done(self, timeout_s: float = 5.0) -> None:
-        """Wait for the callbacks the executor's threads still run (rclpy's ``_futures``)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and any(
-                not task.done() for task in list(getattr(self.executor, '_futures', ()))):
-            time.sleep(0.001)
 
     @property
     def spinning(self) -> bool:
