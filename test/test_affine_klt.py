@@ -66,10 +66,13 @@ def test_refinement_recovers_deformed_windows_better_than_translation_klt(M):
     assert np.median(err_ref) < 0.03
     assert np.median(err_ref) < 0.5 * np.median(err_klt)
     assert refined.dtype == np.float64
-    # Every second pixel of a 21-pixel window (the default) does as well.
-    sparse, ok = refine_affine(img0, img1, pts, klt, win_size_px=21, iterations=5, step_px=2)
-    assert ok.all()
-    assert np.median(np.linalg.norm(sparse - true, axis=1)) < 0.03
+    # Every second pixel of a 21-pixel window (the default) does as well, with its samples
+    # weighted to the centre too.
+    for sigma in (0.0, 5.0):
+        sparse, ok = refine_affine(img0, img1, pts, klt, win_size_px=21, iterations=5,
+                                   step_px=2, sigma_px=sigma)
+        assert ok.all()
+        assert np.median(np.linalg.norm(sparse - true, axis=1)) < 0.03
 
 
 def test_horizontal_mode_fixes_the_row_and_fits_a_disparity_plane():
@@ -158,3 +161,45 @@ def test_points_at_the_border_and_non_finite_inputs_do_not_break_it():
     # Far outside the image: every sample is the border, nothing to fit, nothing crashes.
     out, ok = refine_affine(img0, img1, np.array([[-5e3, 1e9]]), np.array([[1e12, -3e3]]))
     assert not ok.any()
+
+
+def test_centre_weighting_lets_a_nearer_surface_in_the_window_pull_less():
+    """
+    A stereo window on a far surface whose side shows a nearer one (an object's border).
+
+    The far texture has a disparity of 2 px; a nearer surface with its own texture and a
+    disparity of 5 px fills the window's columns from 5 px left of the point. With every sample
+    alike the match is pulled towards the nearer disparity by half a pixel; weighting the
+    samples by their distance to the centre pulls it less, and leaves matches without a border
+    where they were.
+    """
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    pts = grid_points()
+    far_d, near_d = 2.0, 5.0
+    near_left, near_right = np.zeros((H, W), bool), np.zeros((H, W), bool)
+    for x, y in pts:  # the nearer surface seen in the left image, and in the right one
+        rows = np.abs(ys - y) < 12
+        near_left |= rows & (xs < x - 5.0) & (xs > x - 20.0)
+        near_right |= rows & (xs < x - 5.0 - near_d) & (xs > x - 20.0 - near_d)
+    left = np.where(near_left, texture(xs, ys, seed=5), texture(xs, ys))
+    right = np.where(near_right, texture(xs + near_d, ys, seed=5), texture(xs + far_d, ys))
+    left, right = (np.clip(np.round(v), 0, 255).astype(np.uint8) for v in (left, right))
+    true = pts - np.array([far_d, 0.0])
+    start = true + np.array([0.3, 0.0])
+    err = {}
+    for sigma in (0.0, 3.0):
+        out, ok = refine_affine(left, right, pts, start, win_size_px=15, iterations=5,
+                                horizontal=True, step_px=2, sigma_px=sigma)
+        assert ok.all()
+        err[sigma] = out[:, 0] - true[:, 0]
+    # Pulled towards the nearer surface: the match lies left, the disparity is too large.
+    assert np.median(err[0.0]) < -0.3
+    assert np.median(np.abs(err[3.0])) < 0.5 * np.median(np.abs(err[0.0]))
+    # Without a border in the window the weighting changes nothing that matters.
+    plain = warped(np.eye(2), np.zeros(2))
+    shifted = warped(np.eye(2), np.array([-far_d, 0.0]))
+    for sigma in (0.0, 3.0):
+        out, ok = refine_affine(plain, shifted, pts, start, win_size_px=15, iterations=5,
+                                horizontal=True, step_px=2, sigma_px=sigma)
+        assert ok.all()
+        assert np.abs(out - true).max() < 0.03

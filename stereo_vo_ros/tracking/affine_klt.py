@@ -13,7 +13,10 @@ Lucas-Kanade algorithm (Baker and Matthews, "Lucas-Kanade 20 years on", 2004) on
 the window of the first image (the template) is fixed; the second image is sampled at
 ``c + A x`` for the window offsets ``x``, and the centre ``c`` and the 2x2 matrix ``A`` are
 updated. Brightness is compared after removing each window's mean and scaling it to the
-template's contrast, so exposure changes do not move the estimate.
+template's contrast, so exposure changes do not move the estimate. The samples can be weighted
+by a Gaussian of their distance to the window's centre (``sigma_px``): a window across an
+object's border holds two surfaces that move (or shift between the cameras) differently, and
+an unweighted fit follows both.
 
 The loop over points is compiled with Numba (``_refine_points``, as the module is imported;
 see ``jit``): one pass over each window per step, bilinear sampling in float64 with the border
@@ -116,10 +119,10 @@ _F8, _I8, _B1 = numba.types.float64, numba.types.int64, numba.types.boolean
 
 
 @kernel(image_signatures(lambda img: numba.types.void(
-    img, img, readonly(_F8, 2), readonly(_F8, 2), _I8, _I8, _I8, _B1, _F8,
+    img, img, readonly(_F8, 2), readonly(_F8, 2), _I8, _I8, _I8, _B1, _F8, _F8,
     numba.types.Array(_F8, 2, 'C'), numba.types.Array(_B1, 1, 'C'))))
 def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizontal, max_shift,
-                   out, ok):
+                   sigma, out, ok):
     """
     Refine as ``refine_affine`` (its parameters) does, into ``out`` (N, 2) and ``ok`` (N,).
 
@@ -134,6 +137,14 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
             ys_l.append(r - half - 1.0)
     xs, ys = np.array(xs_l), np.array(ys_l)
     k_n = len(xs)
+    # Weight of each sample: a Gaussian of the distance to the window centre, or 1.
+    wt = np.ones(k_n)
+    if sigma > 0.0:
+        for k in range(k_n):
+            wt[k] = math.exp(-0.5 * (xs[k] * xs[k] + ys[k] * ys[k]) / (sigma * sigma))
+    w_sum = 0.0
+    for k in range(k_n):
+        w_sum += wt[k]
     n_par = 3 if horizontal else 6
     patch = np.empty((side, side))
     tpl = np.empty(k_n)
@@ -170,27 +181,27 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
                     sd[4, k] = gx
                     sd[5, k] = gy
                 tpl[k] = patch[r, c]
-                t_mean += patch[r, c]
+                t_mean += wt[k] * patch[r, c]
                 k += 1
-        t_mean /= k_n
+        t_mean /= w_sum
         t_var = 0.0
         for k in range(k_n):
             tpl[k] -= t_mean
-            t_var += tpl[k] * tpl[k]
-        tpl_std = math.sqrt(t_var / k_n) + 1e-3
+            t_var += wt[k] * tpl[k] * tpl[k]
+        tpl_std = math.sqrt(t_var / w_sum) + 1e-3
         # Gauss-Newton matrix, centred (the comparison is blind to the window mean), damped.
         for a in range(n_par):
             s = 0.0
             for k in range(k_n):
-                s += sd[a, k]
-            mean_sd[a] = s / k_n
+                s += wt[k] * sd[a, k]
+            mean_sd[a] = s / w_sum
         trace = 0.0
         for a in range(n_par):
             for b in range(a + 1):
                 s = 0.0
                 for k in range(k_n):
-                    s += sd[a, k] * sd[b, k]
-                hess[a, b] = s - k_n * mean_sd[a] * mean_sd[b]
+                    s += wt[k] * sd[a, k] * sd[b, k]
+                hess[a, b] = s - w_sum * mean_sd[a] * mean_sd[b]
             trace += hess[a, a]
         for a in range(n_par):
             hess[a, a] += DAMPING * trace + 1e-6
@@ -203,20 +214,20 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
             _warped(dst, cx, cy, a00, a01, a10, a11, xs, ys, smp)
             m = 0.0
             for k in range(k_n):
-                m += smp[k]
-            m /= k_n
+                m += wt[k] * smp[k]
+            m /= w_sum
             var = 0.0
             for k in range(k_n):
                 smp[k] -= m
-                var += smp[k] * smp[k]
-            img_std = math.sqrt(var / k_n)
+                var += wt[k] * smp[k] * smp[k]
+            img_std = math.sqrt(var / w_sum)
             scale = tpl_std / (img_std + 1e-3)
             err2 = 0.0
             for k in range(k_n):
                 e = smp[k] * scale - tpl[k]  # the brightness error (zero mean)
-                smp[k] = e
-                err2 += e * e
-            err2 /= k_n
+                smp[k] = wt[k] * e
+                err2 += wt[k] * e * e
+            err2 /= w_sum
             for a in range(n_par):
                 s = 0.0
                 for k in range(k_n):
@@ -249,7 +260,7 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
 def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
                   pts_to: np.ndarray, win_size_px: int = 21, iterations: int = 3,
                   max_shift_px: float = MAX_SHIFT_PX, horizontal: bool = False,
-                  step_px: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                  step_px: int = 1, sigma_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """
     Refine matches ``pts_from`` -> ``pts_to`` with an affine window model.
 
@@ -274,6 +285,9 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
     step_px : int
         Use every ``step_px``-th pixel of the window in both directions (gradients still come
         from the full-resolution template): 2 costs about half as much on 21-pixel windows.
+    sigma_px : float
+        Std (pixels) of the Gaussian weight of each sample by its distance to the window's
+        centre, in the fit and in the correlation test; 0 weights all samples alike.
 
     Returns
     -------
@@ -294,5 +308,6 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
     if src.dtype != dst.dtype:
         src, dst = src.astype(np.float32), dst.astype(np.float32)
     _refine_points(src, dst, start, given, int(win_size_px) // 2, max(int(step_px), 1),
-                   int(iterations), bool(horizontal), float(max_shift_px), refined, ok)
+                   int(iterations), bool(horizontal), float(max_shift_px), float(sigma_px),
+                   refined, ok)
     return refined, ok

@@ -221,7 +221,8 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
         horizontal = calib.kind == 'rectified'
         refined, _ = refine_affine(left, right, pts[ok], pr[ok],
                                    cfg.affine_stereo_win_size_px, cfg.affine_iterations,
-                                   horizontal=horizontal, step_px=cfg.affine_step_px)
+                                   horizontal=horizontal, step_px=cfg.affine_step_px,
+                                   sigma_px=cfg.affine_stereo_sigma_px)
         pr[ok] = refined.astype(pr.dtype)
         ir[ok] = calib.undistort_right(pr[ok])
         timings['affine'] = (clock() - t) * 1e3

@@ -559,9 +559,10 @@ class StereoTracker:
         t = CLOCK()
         horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
         win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
+        sigma = cfg.affine_stereo_sigma_px if stereo else cfg.affine_sigma_px
         out, _ = refine_affine(img_from, img_to, pts_from, pts_to,
                                win, cfg.affine_iterations, horizontal=horizontal,
-                               step_px=cfg.affine_step_px)
+                               step_px=cfg.affine_step_px, sigma_px=sigma)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 
