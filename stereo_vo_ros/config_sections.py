@@ -80,8 +80,8 @@ class TrackerConfig:
         5.0, 'The temporal refinement weights its samples by a Gaussian of their distance to the '
         "window's centre with this std (pixels; 0: all alike). A window across an object's "
         'border holds two surfaces that move differently, and the match follows both; weighted '
-        'to its centre it follows the feature. Rendered, seeds 0-23 / 0-15, 150 frames, mean '
-        't_rel all alike / 5 px: highway 0.338 / 0.273 % (15 of 22 scenes better), highway_rig '
+        'to its centre it follows the feature. Rendered, seeds 0-47 / 0-15, 150 frames, mean '
+        't_rel all alike / 5 px: highway 0.375 / 0.306 % (28 of 45 scenes better), highway_rig '
         '0.703 / 0.666 %, urban_rig 0.154 / 0.140 %, urban 0.076 / 0.062 %, urban_photometric '
         '0.063 / 0.066 %; end drift over 12 RANSAC seeds kitti06 1.24 / 1.09 %, kitti01 1.45 / '
         '1.21 %.', 0.0, 100.0, dynamic=True)
@@ -89,8 +89,9 @@ class TrackerConfig:
         0.0, 'The same for the stereo refinement window (pixels; 0: all alike). At a nearer '
         "surface's border the stereo match is pulled towards its disparity (far points with a "
         'disparity that varies by 0.5-2 px over the window read +0.05 px on the rendered '
-        'highway); 3 px cuts that to +0.01 px but leaves the matches noisier: highway 0.338 -> '
-        '0.396 %, highway_rig 0.703 -> 0.891 % (the temporal weighting off).', 0.0, 100.0,
+        'highway); 3 px cuts that to +0.01 px but leaves the matches noisier: highway (seeds '
+        '0-23) 0.338 -> 0.396 %, highway_rig (0-15) 0.703 -> 0.891 % (the temporal weighting '
+        'off).', 0.0, 100.0,
         dynamic=True)
     affine_step_px: int = _f(
         2, 'The affine refinement uses every n-th pixel of its window in both directions (1: '
