@@ -91,8 +91,7 @@ class TrackerConfig:
         'disparity that varies by 0.5-2 px over the window read +0.05 px on the rendered '
         'highway); 3 px cuts that to +0.01 px but leaves the matches noisier: highway (seeds '
         '0-23) 0.338 -> 0.396 %, highway_rig (0-15) 0.703 -> 0.891 % (the temporal weighting '
-        'off).', 0.0, 100.0,
-        dynamic=True)
+        'off).', 0.0, 100.0, dynamic=True)
     affine_step_px: int = _f(
         2, 'The affine refinement uses every n-th pixel of its window in both directions (1: '
         'all; 2 halves its cost).',

@@ -163,43 +163,48 @@ def test_points_at_the_border_and_non_finite_inputs_do_not_break_it():
     assert not ok.any()
 
 
-def test_centre_weighting_lets_a_nearer_surface_in_the_window_pull_less():
+@pytest.mark.parametrize('horizontal, win, sigma, edge', [
+    (True, 15, 3.0, 5.0),    # a stereo window (the match along the row)
+    (False, 21, 5.0, 7.0)])  # a temporal window (the default weighting)
+def test_centre_weighting_lets_a_nearer_surface_in_the_window_pull_less(
+        horizontal, win, sigma, edge):
     """
-    A stereo window on a far surface whose side shows a nearer one (an object's border).
+    A window on a far surface whose side shows a nearer one (an object's border).
 
-    The far texture has a disparity of 2 px; a nearer surface with its own texture and a
-    disparity of 5 px fills the window's columns from 5 px left of the point. With every sample
-    alike the match is pulled towards the nearer disparity by half a pixel; weighting the
-    samples by their distance to the centre pulls it less, and leaves matches without a border
-    where they were.
+    The far texture moves by 2 px between the images; a nearer surface with its own texture
+    moves by 5 px and fills the window's columns from ``edge`` px left of the point. With every
+    sample alike the match is pulled towards the nearer surface's motion by about half a pixel;
+    weighting the samples by their distance to the centre pulls it less, and leaves matches
+    without a border where they were.
     """
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
     pts = grid_points()
     far_d, near_d = 2.0, 5.0
-    near_left, near_right = np.zeros((H, W), bool), np.zeros((H, W), bool)
-    for x, y in pts:  # the nearer surface seen in the left image, and in the right one
+    near_from, near_to = np.zeros((H, W), bool), np.zeros((H, W), bool)
+    for x, y in pts:  # the nearer surface in the first image, and in the second one
         rows = np.abs(ys - y) < 12
-        near_left |= rows & (xs < x - 5.0) & (xs > x - 20.0)
-        near_right |= rows & (xs < x - 5.0 - near_d) & (xs > x - 20.0 - near_d)
-    left = np.where(near_left, texture(xs, ys, seed=5), texture(xs, ys))
-    right = np.where(near_right, texture(xs + near_d, ys, seed=5), texture(xs + far_d, ys))
-    left, right = (np.clip(np.round(v), 0, 255).astype(np.uint8) for v in (left, right))
+        near_from |= rows & (xs < x - edge) & (xs > x - 20.0)
+        near_to |= rows & (xs < x - edge - near_d) & (xs > x - 20.0 - near_d)
+    img0 = np.where(near_from, texture(xs, ys, seed=5), texture(xs, ys))
+    img1 = np.where(near_to, texture(xs + near_d, ys, seed=5), texture(xs + far_d, ys))
+    img0, img1 = (np.clip(np.round(v), 0, 255).astype(np.uint8) for v in (img0, img1))
     true = pts - np.array([far_d, 0.0])
-    start = true + np.array([0.3, 0.0])
+    start = true + np.array([0.3, 0.0 if horizontal else 0.2])
     err = {}
-    for sigma in (0.0, 3.0):
-        out, ok = refine_affine(left, right, pts, start, win_size_px=15, iterations=5,
-                                horizontal=True, step_px=2, sigma_px=sigma)
+    for s in (0.0, sigma):
+        out, ok = refine_affine(img0, img1, pts, start, win_size_px=win, iterations=5,
+                                horizontal=horizontal, step_px=2, sigma_px=s)
         assert ok.all()
-        err[sigma] = out[:, 0] - true[:, 0]
-    # Pulled towards the nearer surface: the match lies left, the disparity is too large.
-    assert np.median(err[0.0]) < -0.3
-    assert np.median(np.abs(err[3.0])) < 0.5 * np.median(np.abs(err[0.0]))
+        err[s] = out - true
+    # Pulled towards the nearer surface: the match lies left (a stereo disparity too large).
+    assert np.median(err[0.0][:, 0]) < -0.3
+    dist = {s: np.median(np.linalg.norm(e, axis=1)) for s, e in err.items()}
+    assert dist[sigma] < 0.5 * dist[0.0]
     # Without a border in the window the weighting changes nothing that matters.
     plain = warped(np.eye(2), np.zeros(2))
     shifted = warped(np.eye(2), np.array([-far_d, 0.0]))
-    for sigma in (0.0, 3.0):
-        out, ok = refine_affine(plain, shifted, pts, start, win_size_px=15, iterations=5,
-                                horizontal=True, step_px=2, sigma_px=sigma)
+    for s in (0.0, sigma):
+        out, ok = refine_affine(plain, shifted, pts, start, win_size_px=win, iterations=5,
+                                horizontal=horizontal, step_px=2, sigma_px=s)
         assert ok.all()
         assert np.abs(out - true).max() < 0.03
