@@ -39,6 +39,7 @@ import math
 import numba
 import numpy as np
 
+from ..config import TrackerConfig
 from ..jit import cholesky, cholesky_solve, image_signatures, kernel, kernel_image, readonly
 
 #: Largest accepted move of a point by the refinement (pixels).
@@ -311,3 +312,19 @@ def refine_affine(img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray
                    int(iterations), bool(horizontal), float(max_shift_px), float(sigma_px),
                    refined, ok)
     return refined, ok
+
+
+def refine_matches(cfg: TrackerConfig, img_from: np.ndarray, img_to: np.ndarray,
+                   pts_from: np.ndarray, pts_to: np.ndarray, stereo: bool = False,
+                   rectified: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """
+    ``refine_affine`` with the tracker's settings for temporal or stereo matches.
+
+    ``stereo`` takes the stereo window and weighting (``affine_stereo_*``); ``rectified``
+    stereo matches keep their row (``horizontal``). Returns as ``refine_affine`` does.
+    """
+    win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
+    sigma = cfg.affine_stereo_sigma_px if stereo else cfg.affine_sigma_px
+    return refine_affine(img_from, img_to, pts_from, pts_to, win, cfg.affine_iterations,
+                         horizontal=stereo and rectified, step_px=cfg.affine_step_px,
+                         sigma_px=sigma)

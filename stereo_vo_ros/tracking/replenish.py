@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from .affine_klt import refine_affine
+from .affine_klt import refine_matches
 from .detection import bucket_ids, detect_corners
 from .klt_checks import (disparity_constraint, disparity_in_range, eigen_ratio, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
@@ -218,11 +218,8 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     timings['stereo_bwd'] = (clock() - t) * 1e3
     if cfg.affine_refinement and ok.any():
         t = clock()
-        horizontal = calib.kind == 'rectified'
-        refined, _ = refine_affine(left, right, pts[ok], pr[ok],
-                                   cfg.affine_stereo_win_size_px, cfg.affine_iterations,
-                                   horizontal=horizontal, step_px=cfg.affine_step_px,
-                                   sigma_px=cfg.affine_stereo_sigma_px)
+        refined, _ = refine_matches(cfg, left, right, pts[ok], pr[ok], stereo=True,
+                                    rectified=calib.kind == 'rectified')
         pr[ok] = refined.astype(pr.dtype)
         ir[ok] = calib.undistort_right(pr[ok])
         timings['affine'] = (clock() - t) * 1e3

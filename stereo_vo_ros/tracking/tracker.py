@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 
 from .adaptive_threshold import bicircular_threshold
-from .affine_klt import refine_affine
+from .affine_klt import refine_matches
 from .detection import plan_detection
 from .features import as_grey_u8, empty_correspondences, FeatureSet
 from .klt_checks import (aperture_checks, bicircular_error, BICIRCULAR_MODES, CheckSet,
@@ -557,12 +557,8 @@ class StereoTracker:
         if not cfg.affine_refinement or not len(pts_from):
             return pts_to
         t = CLOCK()
-        horizontal = stereo and self._calib is not None and self._calib.kind == 'rectified'
-        win = cfg.affine_stereo_win_size_px if stereo else cfg.affine_win_size_px
-        sigma = cfg.affine_stereo_sigma_px if stereo else cfg.affine_sigma_px
-        out, _ = refine_affine(img_from, img_to, pts_from, pts_to,
-                               win, cfg.affine_iterations, horizontal=horizontal,
-                               step_px=cfg.affine_step_px, sigma_px=sigma)
+        rectified = self._calib is not None and self._calib.kind == 'rectified'
+        out, _ = refine_matches(cfg, img_from, img_to, pts_from, pts_to, stereo, rectified)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
         return out.astype(pts_to.dtype)
 
