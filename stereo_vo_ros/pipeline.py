@@ -274,7 +274,7 @@ class StereoOdometry:
                                 'frame ignored')
         timings: dict[str, float] = {}
         if prev_stamp is None:
-            self._track(frame, None, timings)
+            self._track(frame.left, frame.right, calib, None, timings)
             self._road_step(frame, 0.0, False, timings)
             self._rig_prev_left = self.tracker.previous_left()
             self._commit(stamp, calib, TrackingStatus.INITIALIZING)
@@ -295,8 +295,11 @@ class StereoOdometry:
             t0 = time.perf_counter()
             prior = self._road_prior(frame, calib, dt)
             timings['road_search'] = (time.perf_counter() - t0) * 1e3
-        track = self._track(frame, prior, timings)
-        road_images = self._start_road_images(calib)
+        left, right = self.tracker.grey_pair(frame.left, frame.right)
+        # The road pyramids are built next to the tracking: the replenishment takes the other
+        # core from the middle of the tracking to the end of the motion estimate.
+        road_images = self._start_road_images(calib, left, right)
+        track = self._track(left, right, calib, prior, timings)
         corr = track.correspondences
         t0 = time.perf_counter()
         if corr is None or len(corr) == 0:
@@ -394,18 +397,19 @@ class StereoOdometry:
                                           np.array([[vcfg.lateral_speed_std ** 2]]),
                                           vcfg.gate_chi2)
 
-    def _start_road_images(self, calib: StereoCalibration):
+    def _start_road_images(self, calib: StereoCalibration, left: np.ndarray,
+                           right: np.ndarray):
         """
-        Start the road pyramids of the pair just tracked (``RoadAligner.prepare``).
+        Start the road pyramids of a pair ((H, W) uint8 images, as the tracker sees them).
 
-        With a helper thread they are built there, next to the motion estimate (OpenCV
-        filters, which release the GIL); the same images either way. Returns the pending
-        result (``.result()``: the images and the time building them took, ms), or None when
-        the road is not aligned.
+        ``RoadAligner.prepare``: with a helper thread they are built there, next to the
+        caller (OpenCV filters, which release the GIL); the same images either way. The
+        images must not change until the result is taken. Returns the pending result
+        (``.result()``: the images and the time building them took, ms), or None when the road
+        is not aligned.
         """
         if not self.config.road.enabled or calib.kind != 'rectified':
             return None
-        left, right = self.tracker.last_pair()
         return self.workers.submit_local(_timed, self.road.prepare, left, right,
                                          self.road.first_row(calib, self._road_plane))
 
@@ -430,7 +434,7 @@ class StereoOdometry:
         t0 = time.perf_counter()
         prev_images, plane = self._road_images, self._road_plane
         if images is None:
-            images = self._start_road_images(calib)
+            images = self._start_road_images(calib, *self.tracker.last_pair())
         images, prepare_ms = images.result()  # this pair, as the tracker converted it
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
         fused = False
@@ -505,11 +509,11 @@ class StereoOdometry:
             H_cur = np.linalg.inv(rig.homography_inverse(calib))
         return ConstantVelocityPrior(prev_calib, calib, dt, velocity, H_prev, H_cur)
 
-    def _track(self, frame: StereoFrame, prior, timings: dict[str, float]) -> PendingTrack:
+    def _track(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration, prior,
+               timings: dict[str, float]) -> PendingTrack:
         """Track the pair; its replenishment runs on while the caller estimates the motion."""
         t0 = time.perf_counter()
-        track = self.tracker.track_async(frame.left, frame.right, frame.calibration,
-                                         prior=prior)
+        track = self.tracker.track_async(left, right, calib, prior=prior)
         timings['track'] = (time.perf_counter() - t0) * 1e3
         return track
 

@@ -199,13 +199,13 @@ def test_results_with_a_worker_do_not_depend_on_its_kind_or_count(urban):
 
 
 def test_road_profile_does_not_depend_on_the_thread_count(urban, monkeypatch):
-    """The road pyramids are built on the helper thread next to the estimate: same poses."""
+    """The road pyramids are built on the helper thread next to the tracking: same poses."""
     frames, _ = urban
     built = []  # on the caller's thread
     real = StereoOdometry._start_road_images
 
-    def recorded(self, calib):
-        out = real(self, calib)
+    def recorded(self, calib, left, right):
+        out = real(self, calib, left, right)
         built.append(threading.current_thread() is threading.main_thread()
                      if isinstance(out, parallel._Done) else False)
         return out

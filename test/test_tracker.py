@@ -544,6 +544,27 @@ def test_uint16_input_matches_uint8():
     np.testing.assert_allclose(results[0].cur_right[i0], results[1].cur_right[i1], atol=0.05)
 
 
+def test_grey_pair_gives_the_images_track_sees():
+    """Tracking grey_pair's images tracks the same as tracking the uint16 images themselves."""
+    calib = rectified_calib()
+    direct, converted = StereoTracker(), StereoTracker()
+    out = []
+    for tracker, first in ((direct, False), (converted, True)):
+        for peak, m in ((1023, M1), (4095, M2)):  # the second pair raises the bit depth
+            left, right = (np.round(i * (peak / 255.0)).astype(np.uint16) for i in pair(m))
+            if first:
+                left, right = tracker.grey_pair(left, right)
+                assert left.dtype == right.dtype == np.uint8
+            res = tracker.track(left, right, calib)
+        out.append((res.correspondences, tracker.last_pair()))
+    (a, pair_a), (b, pair_b) = out
+    assert len(a) > 100
+    assert np.array_equal(a.cur_right, b.cur_right) and np.array_equal(a.ids, b.ids)
+    assert all(np.array_equal(x, y) for x, y in zip(pair_a, pair_b))
+    with pytest.raises(ImageError, match='differ'):
+        converted.grey_pair(left, right[:-2])
+
+
 def test_caller_reusing_image_buffers_does_not_corrupt_tracking():
     calib = rectified_calib()
     tracker = StereoTracker(config())

@@ -159,6 +159,27 @@ class StereoTracker:
         """Return an image as ``track`` sees it: (H, W) uint8, uint16 scaled by the bit depth."""
         return as_grey_u8(img, 'left', self._bits)[0]
 
+    def grey_pair(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return a pair as ``track`` sees it ((H, W) uint8 each), fixing the bit depth now.
+
+        uint16 input raises the bit depth it is scaled by (which only grows) as ``track``
+        would; passing the returned images to ``track`` then tracks the same as passing
+        ``left`` and ``right``. uint8 input is returned as it is (contiguous).
+
+        Raises
+        ------
+        ImageError
+            Images that are not grey uint8/uint16 or differ in size.
+
+        """
+        left8, self._bits = as_grey_u8(left, 'left', self._bits)
+        right8, self._bits = as_grey_u8(right, 'right', self._bits)
+        if left8.shape != right8.shape:
+            raise ImageError(f'left and right images differ in size: {left8.shape[::-1]} vs '
+                             f'{right8.shape[::-1]}')
+        return left8, right8
+
     def track(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
               prior: Prior | None = None) -> TrackResult:
         """
@@ -207,11 +228,7 @@ class StereoTracker:
         """
         self.join()
         t_start = CLOCK()
-        left8, self._bits = as_grey_u8(left, 'left', self._bits)
-        right8, self._bits = as_grey_u8(right, 'right', self._bits)
-        if left8.shape != right8.shape:
-            raise ImageError(f'left and right images differ in size: {left8.shape[::-1]} vs '
-                             f'{right8.shape[::-1]}')
+        left8, right8 = self.grey_pair(left, right)
         if tuple(calib.size) != (left8.shape[1], left8.shape[0]):
             raise ImageError(f'image size {left8.shape[1]}x{left8.shape[0]} does not match the '
                              f'calibration size {calib.size[0]}x{calib.size[1]}')
