@@ -296,9 +296,11 @@ class StereoOdometry:
             prior = self._road_prior(frame, calib, dt)
             timings['road_search'] = (time.perf_counter() - t0) * 1e3
         left, right = self.tracker.grey_pair(frame.left, frame.right)
-        # The road pyramids are built next to the tracking: the replenishment takes the other
-        # core from the middle of the tracking to the end of the motion estimate.
-        road_images = self._start_road_images(calib, left, right)
+        # With a helper thread the road pyramids are built there next to the tracking: the
+        # replenishment takes the other core from the middle of the tracking to the end of the
+        # motion estimate. In one thread the road step builds them.
+        road_images = self._start_road_images(calib, left, right) if self.workers.overlaps \
+            else None
         track = self._track(left, right, calib, prior, timings)
         corr = track.correspondences
         t0 = time.perf_counter()
@@ -431,10 +433,10 @@ class StereoOdometry:
         if not self.config.road.enabled or calib.kind != 'rectified':
             self._road_images = self._road_plane = None
             return False
-        t0 = time.perf_counter()
-        prev_images, plane = self._road_images, self._road_plane
         if images is None:
             images = self._start_road_images(calib, *self.tracker.last_pair())
+        t0 = time.perf_counter()
+        prev_images, plane = self._road_images, self._road_plane
         images, prepare_ms = images.result()  # this pair, as the tracker converted it
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
         fused = False
