@@ -1092,3 +1092,43 @@ def test_window_transfer_from_predicted_positions():
     assert fit[0] == pytest.approx(0.8, abs=0.01)
     assert fit[1] == pytest.approx(7.0, abs=1.5)
     assert window_transfer(a, pts[:5], b, pts[:5]) is None  # too few windows
+
+
+def test_window_stats_match_the_sampled_windows():
+    """Mean, std and usability of each window: as computed directly from its samples."""
+    from stereo_vo_ros.tracking.photometric import (MAX_WINDOWS, MIN_WINDOW_STD_GREY,
+                                                    SATURATED_GREY, WINDOW_STEP_PX, window_stats)
+    rng = np.random.default_rng(4)
+    img = render((0.0, 0.0), seed=2)
+    other = exposed(img, 1.2, 10.0)
+    other[:40] = 255  # a saturated band
+    other[-40:, :60] = 90  # a flat corner
+    half = 6
+    n = MAX_WINDOWS + 9  # more than are used: rows spread over them are taken
+    pts = [rng.uniform([-5, -5], [W + 5, H + 5], (n, 2)) for _ in range(2)]
+    pts[0][3] = np.nan
+    pts[1][:5] = [(30.0, 10.0), (W - half - 0.6, 60.0), (20.0, H - 10.0), (half, half),
+                  (W - 1 - half, H - 1 - half)]
+    mean, std, ok = window_stats((img, other), tuple(pts), half)
+    rows = np.linspace(0, n - 1, MAX_WINDOWS).astype(int)
+    assert mean.shape == std.shape == ok.shape == (2, MAX_WINDOWS)
+    assert mean.dtype == std.dtype == np.float32
+    r = np.arange(-half, half + 1, WINDOW_STEP_PX)
+    usable = 0
+    for m, (image, p) in enumerate(zip((img, other), pts)):
+        for j, row in enumerate(rows):
+            x, y = p[row]
+            inside = np.isfinite(x) and np.isfinite(y) and half <= round(x) < W - half and \
+                half <= round(y) < H - half
+            if not inside:
+                assert not ok[m, j]
+                continue
+            win = image[int(np.rint(y)) + r][:, int(np.rint(x)) + r].astype(np.float64)
+            assert mean[m, j] == pytest.approx(win.mean(), abs=1e-4)
+            assert std[m, j] == pytest.approx(win.std(), abs=1e-3)
+            expected = (win.std() > MIN_WINDOW_STD_GREY and win.max() < 255 - SATURATED_GREY
+                        and win.min() > SATURATED_GREY)
+            assert ok[m, j] == expected
+            usable += expected
+    assert 0 < usable < 2 * MAX_WINDOWS
+    assert window_stats((img,), (np.zeros((0, 2)),)) is None

@@ -9,6 +9,7 @@ image as given.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Callable
 
@@ -61,13 +62,20 @@ def plan_detection(existing: np.ndarray, need: int, size: tuple[int, int],
         return chosen.reshape(occ.shape)
     if blocked is not None:
         free = np.where(blocked.ravel(), 0, free)
-    scatter = np.random.default_rng(0).permutation(free.size)
-    order = np.lexsort((scatter, -free))
+    order = np.lexsort((_scatter(free.size), -free))
     order = order[free[order] > 0]
     cum = np.cumsum(free[order])
     count = int(np.searchsorted(cum, DETECTION_OVERSAMPLING * need, side='left')) + 1
     chosen[order[:count]] = True
     return chosen.reshape(occ.shape)
+
+
+@functools.lru_cache(maxsize=8)
+def _scatter(n: int) -> np.ndarray:
+    """Return a fixed permutation of ``n`` buckets (``plan_detection``'s tie order), read-only."""
+    order = np.random.default_rng(0).permutation(n)
+    order.flags.writeable = False
+    return order
 
 
 def _regions(chosen: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig

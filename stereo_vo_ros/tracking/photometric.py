@@ -48,7 +48,10 @@ import functools
 from typing import Any, Callable
 
 import cv2
+import numba
 import numpy as np
+
+from ..jit import kernel, readonly
 
 #: Quantiles matched between the two histograms.
 QUANTILES = np.arange(0.05, 0.951, 0.05)
@@ -170,7 +173,7 @@ def window_stats(images: tuple[np.ndarray, ...], points: tuple[np.ndarray, ...],
     if n_all == 0 or any(len(p) != n_all for p in pts):
         return None
     if n_all > MAX_WINDOWS:
-        pick = np.linspace(0, n_all - 1, MAX_WINDOWS).astype(np.int64)
+        pick = _spread(n_all)
         pts = [p[pick] for p in pts]
     m, n = len(images), len(pts[0])
     h, w = images[0].shape
@@ -180,15 +183,50 @@ def window_stats(images: tuple[np.ndarray, ...], points: tuple[np.ndarray, ...],
     ok &= ((c[:, 0] >= half) & (c[:, 0] < w - half) & (c[:, 1] >= half)
            & (c[:, 1] < h - half))
     c[~ok] = half
-    idx = ((c[:, 1] * w + c[:, 0])[:, None] + _window_offsets(w, half)).reshape(m, n, -1)
-    win = np.stack([np.take(img, i) for img, i in zip(images, idx)])  # (M, n, K) uint8
-    ok = ok.reshape(m, n) & (win.max(axis=2) < 255 - SATURATED_GREY) & (
-        win.min(axis=2) > SATURATED_GREY)
-    f = win.astype(np.float32)
-    k = np.float32(1.0 / f.shape[2])
-    mean = f.sum(axis=2) * k
-    std = np.sqrt(np.maximum(np.einsum('mnk,mnk->mn', f, f) * k - mean * mean, 0.0))
+    sums = np.empty((m * n, 4), np.int64)  # sum, sum of squares, min, max of each window
+    for i, img in enumerate(images):
+        if img.shape != (h, w):
+            raise ValueError(f'images of different sizes: {img.shape} and {(h, w)}')
+        _window_sums(np.ascontiguousarray(img, np.uint8), c[i * n:(i + 1) * n], half,
+                     WINDOW_STEP_PX, sums[i * n:(i + 1) * n])
+    sums = sums.reshape(m, n, 4)
+    ok = ok.reshape(m, n) & (sums[:, :, 3] < 255 - SATURATED_GREY) & (
+        sums[:, :, 2] > SATURATED_GREY)
+    # Sums of grey levels and their squares over at most 256 samples are integers below 2^24:
+    # exact in float32, as summing the float32 samples would give them.
+    k = np.float32(1.0 / len(range(-half, half + 1, WINDOW_STEP_PX)) ** 2)
+    mean = sums[:, :, 0].astype(np.float32) * k
+    std = np.sqrt(np.maximum(sums[:, :, 1].astype(np.float32) * k - mean * mean, 0.0))
     return mean, std, ok & (std > MIN_WINDOW_STD_GREY)
+
+
+@functools.lru_cache(maxsize=16)
+def _spread(n_all: int) -> np.ndarray:
+    """(MAX_WINDOWS,) int64 rows spread evenly over ``n_all`` (first and last included)."""
+    return np.linspace(0, n_all - 1, MAX_WINDOWS).astype(np.int64)
+
+
+@kernel(numba.types.void(readonly(numba.types.uint8, 2), readonly(numba.types.int64, 2),
+                         numba.types.int64, numba.types.int64,
+                         numba.types.Array(numba.types.int64, 2, 'C')))
+def _window_sums(img, centres, half, step, out):
+    """
+    Write sum, sum of squares, min and max of the windows at (x, y) ``centres`` to ``out``.
+
+    Every ``step``-th pixel of a window of half side ``half`` (pixels) around each (n, 2)
+    centre, which must lie ``half`` inside the (H, W) uint8 image; ``out`` is (n, 4).
+    """
+    for i in range(centres.shape[0]):
+        x, y = centres[i, 0], centres[i, 1]
+        total, squares, lo, hi = 0, 0, 255, 0
+        for r in range(y - half, y + half + 1, step):
+            for c in range(x - half, x + half + 1, step):
+                v = np.int64(img[r, c])
+                total += v
+                squares += v * v
+                lo = min(lo, v)
+                hi = max(hi, v)
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = total, squares, lo, hi
 
 
 def transfer_from_stats(mean_from: np.ndarray, std_from: np.ndarray, ok_from: np.ndarray,
@@ -262,13 +300,6 @@ def _middle_mean(values: np.ndarray) -> float:
     v = np.sort(values)
     q = len(v) // 4
     return float(v[q:len(v) - q].mean())
-
-
-@functools.lru_cache(maxsize=8)
-def _window_offsets(width: int, half: int) -> np.ndarray:
-    """(K,) int64 flat index offsets of a window's samples (every ``WINDOW_STEP_PX``-th)."""
-    r = np.arange(-half, half + 1, WINDOW_STEP_PX)
-    return (r[:, None] * width + r[None, :]).ravel()
 
 
 def apply_transfer(img: np.ndarray, gain: float, offset: float,

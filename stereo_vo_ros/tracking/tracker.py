@@ -382,19 +382,6 @@ class StereoTracker:
         stats.used_prior = pred is not None
         t = clock()
         levels = cfg.predicted_pyramid_levels if pred is not None else cfg.pyramid_levels
-        # Aperture checks: on an edge-like window the flow along the edge would come from the
-        # initial flow (the motion prior), not from the image; the same along the predicted
-        # flow, over the window the refinement will use. With a helper thread they run next to
-        # the KLT pass, which then tracks every feature (each point is tracked on its own, so
-        # the kept ones come out the same).
-        flow_tracked = None
-        if pred is not None and cfg.min_flow_edge_ratio_tracked > 0:
-            flow_tracked = pred[0] - f.left_raw
-        aperture = None
-        if n_prev and (cfg.min_eigen_ratio > 0 or flow_tracked is not None):
-            aperture = self.workers.submit_local(
-                aperture_checks, prev_left, f.left_raw, flow_tracked, win,
-                cfg.affine_win_size_px, cfg.min_eigen_ratio, cfg.min_flow_edge_ratio_tracked)
         # Photometric compensation: every KLT pass sees its second image mapped to the
         # brightness of its first (``photometric``; the images as given when they match). With
         # the prior, the windows at the features' positions in the four images give all maps.
@@ -411,6 +398,20 @@ class StereoTracker:
         spent = clock() - t_photo
         ms['photometric'] += spent * 1e3
         t += spent
+        # Aperture checks: on an edge-like window the flow along the edge would come from the
+        # initial flow (the motion prior), not from the image; the same along the predicted
+        # flow, over the window the refinement will use. With a helper thread they run next to
+        # the KLT pass, which then tracks every feature (each point is tracked on its own, so
+        # the kept ones come out the same). Started after the photometric fits: the helper's
+        # Python would otherwise take turns with theirs on the GIL.
+        flow_tracked = None
+        if pred is not None and cfg.min_flow_edge_ratio_tracked > 0:
+            flow_tracked = pred[0] - f.left_raw
+        aperture = None
+        if n_prev and (cfg.min_eigen_ratio > 0 or flow_tracked is not None):
+            aperture = self.workers.submit_local(
+                aperture_checks, prev_left, f.left_raw, flow_tracked, win,
+                cfg.affine_win_size_px, cfg.min_eigen_ratio, cfg.min_flow_edge_ratio_tracked)
         left_m, spent = self._matched(prev_left, left, None, None, stats)
         t += spent
         passed = None  # aperture: which features may be tracked (None: all)
