@@ -1132,3 +1132,5 @@ def test_window_stats_match_the_sampled_windows():
             usable += expected
     assert 0 < usable < 2 * MAX_WINDOWS
     assert window_stats((img,), (np.zeros((0, 2)),)) is None
+    tiny = img[:2 * half, :50]  # no window of half side 6 fits
+    assert window_stats((tiny,), (np.array([[25.0, 6.0]]),), half) is None

@@ -153,7 +153,7 @@ def window_stats(images: tuple[np.ndarray, ...], points: tuple[np.ndarray, ...],
     Parameters
     ----------
     images : tuple of np.ndarray
-        M (H, W) uint8 grey images of one size.
+        M (H, W) uint8 grey images of one size (else ValueError).
     points : tuple of np.ndarray
         M (N, 2) float positions (pixels), row i of each the same scene point (predicted
         positions suffice). At most ``MAX_WINDOWS`` rows, spread over the N, are used.
@@ -165,7 +165,8 @@ def window_stats(images: tuple[np.ndarray, ...], points: tuple[np.ndarray, ...],
     tuple of np.ndarray or None
         ``(mean, std, usable)``, each (M, n): window mean and standard deviation (grey
         levels) and whether the window lies inside its image, is textured (standard deviation
-        above ``MIN_WINDOW_STD_GREY``) and is not saturated. None without points.
+        above ``MIN_WINDOW_STD_GREY``) and is not saturated. None without points, or when not
+        one window fits in the images.
 
     """
     pts = [np.asarray(p, np.float64).reshape(-1, 2) for p in points]
@@ -177,6 +178,8 @@ def window_stats(images: tuple[np.ndarray, ...], points: tuple[np.ndarray, ...],
         pts = [p[pick] for p in pts]
     m, n = len(images), len(pts[0])
     h, w = images[0].shape
+    if min(h, w) < 2 * half + 1:
+        return None  # not one window fits
     p = np.concatenate(pts)
     ok = np.isfinite(p).all(axis=1)
     c = np.rint(np.where(ok[:, None], p, float(half))).astype(np.int64)
@@ -192,8 +195,8 @@ def window_stats(images: tuple[np.ndarray, ...], points: tuple[np.ndarray, ...],
     sums = sums.reshape(m, n, 4)
     ok = ok.reshape(m, n) & (sums[:, :, 3] < 255 - SATURATED_GREY) & (
         sums[:, :, 2] > SATURATED_GREY)
-    # Sums of grey levels and their squares over at most 256 samples are integers below 2^24:
-    # exact in float32, as summing the float32 samples would give them.
+    # With the default windows (121 samples) the sums of grey levels and of their squares are
+    # integers below 2^24: exact in float32, as the float32 sums of the samples were.
     k = np.float32(1.0 / len(range(-half, half + 1, WINDOW_STEP_PX)) ** 2)
     mean = sums[:, :, 0].astype(np.float32) * k
     std = np.sqrt(np.maximum(sums[:, :, 1].astype(np.float32) * k - mean * mean, 0.0))
