@@ -295,12 +295,13 @@ class StereoOdometry:
             t0 = time.perf_counter()
             prior = self._road_prior(frame, calib, dt)
             timings['road_search'] = (time.perf_counter() - t0) * 1e3
-        left, right = self.tracker.grey_pair(frame.left, frame.right)
-        # With a helper thread the road pyramids are built there next to the tracking: the
-        # replenishment takes the other core from the middle of the tracking to the end of the
-        # motion estimate. In one thread the road step builds them.
-        road_images = self._start_road_images(calib, left, right) if self.workers.overlaps \
-            else None
+        left, right, road_images = frame.left, frame.right, None
+        if self.workers.overlaps and self._aligns_road(calib):
+            # The road pyramids are built on the helper next to the tracking: the replenishment
+            # takes the other core from the middle of the tracking to the end of the motion
+            # estimate. In one thread the road step builds them.
+            left, right = self.tracker.grey_pair(left, right)
+            road_images = self._start_road_images(calib, left, right)
         track = self._track(left, right, calib, prior, timings)
         corr = track.correspondences
         t0 = time.perf_counter()
@@ -399,6 +400,10 @@ class StereoOdometry:
                                           np.array([[vcfg.lateral_speed_std ** 2]]),
                                           vcfg.gate_chi2)
 
+    def _aligns_road(self, calib: StereoCalibration) -> bool:
+        """Return whether the road is aligned on pairs of ``calib`` (on, rectified input)."""
+        return self.config.road.enabled and calib.kind == 'rectified'
+
     def _start_road_images(self, calib: StereoCalibration, left: np.ndarray,
                            right: np.ndarray):
         """
@@ -410,7 +415,7 @@ class StereoOdometry:
         (``.result()``: the images and the time building them took, ms), or None when the road
         is not aligned.
         """
-        if not self.config.road.enabled or calib.kind != 'rectified':
+        if not self._aligns_road(calib):
             return None
         return self.workers.submit_local(_timed, self.road.prepare, left, right,
                                          self.road.first_row(calib, self._road_plane))
@@ -430,7 +435,7 @@ class StereoOdometry:
         road motion was fused.
         """
         calib = frame.calibration
-        if not self.config.road.enabled or calib.kind != 'rectified':
+        if not self._aligns_road(calib):
             self._road_images = self._road_plane = None
             return False
         if images is None:
