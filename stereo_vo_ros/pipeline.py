@@ -22,6 +22,7 @@ Frames: ``world`` is the optical frame of the first left camera (x right, y down
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 
@@ -72,13 +73,6 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return A
 
 
-def _timed(fn, *args):
-    """Return ``fn(*args)`` and the time it took (ms)."""
-    t0 = time.perf_counter()
-    out = fn(*args)
-    return out, (time.perf_counter() - t0) * 1e3
-
-
 def validate_images(left: np.ndarray, right: np.ndarray, calib: StereoCalibration) -> None:
     """Raise ImageError unless both images are 2-D, non-empty, equal and match the calibration."""
     for img, name in ((left, 'left'), (right, 'right')):
@@ -126,9 +120,15 @@ class StereoOdometry:
         #: Online estimate of the rig's error (``rig``); kept by ``reset()``: it belongs to the
         #: cameras, not to the trajectory. A new calibration starts it over.
         self.rig = RigCalibrator(self.config.rig)
-        #: The last pair's work that its pose did not need (``settle``): that pair's result and
-        #: its rig update (None without one), or None.
+        #: The last pair's work that its pose did not need (``settle``): that pair's result, its
+        #: rig update (None without one) and its road plane refinement (None without one), or
+        #: None.
         self._unsettled: tuple | None = None
+        #: The previous pair's road plane to refine (``_road_step``), handed over by
+        #: ``settle`` (``_settle_road``), while it is refined on the helper (the job), or None.
+        self._road_pending: tuple | None = None
+        self._road_plane_work: tuple | None = None
+        self._road_plane_job = None
         self.reset()
 
     # -- control -----------------------------------------------------------------------
@@ -146,6 +146,9 @@ class StereoOdometry:
         #: The previous pair prepared for the road alignment, and its road plane.
         self._road_images: RoadImages | None = None
         self._road_plane: RoadPlane | None = None
+        #: The time refining ``_road_plane`` took (ms; counted in the next pair's ``road``).
+        self._road_plane_ms = 0.0
+        self._road_pending = self._road_plane_work = None
         #: The previous pair's left image as tracked (the rig's row coupling of its matches).
         self._rig_prev_left: np.ndarray | None = None
         self.tracker.reset()
@@ -195,26 +198,34 @@ class StereoOdometry:
         except Exception as exc:  # noqa: BLE001 - the caller goes on (reset, close, ...)
             LOG.error("the last pair's work after its pose failed before the %s: %s: %s", why,
                       type(exc).__name__, exc)
+            self._road_plane_work = self._road_plane_job = None
 
     def settle(self) -> float:
         """
         Run the last pair's work that its pose did not need; return its time (ms).
 
         That is the rig refinement's update from the pair (``rig``), which moves the estimate
-        the next pair's correction and motion prior use, and the wait for the tracker's
-        replenishment (new corners for the next pair, found on the worker). ``process``
-        returns the pose before them and runs them first thing in the next call; a caller with
-        time between pairs (the ROS node, once the odometry is published) calls this to take
-        them out of the time to the next pose. Once they ran, the pair's result is complete:
-        its ``rig`` is the estimate after its update, its ``timings_ms`` has the tracker's
-        stage times (``track.*``), ``rig`` includes the update and ``after_pose`` is the time
-        of both (0.0 until then). Nothing to do: returns 0.0. An error of either is raised
-        here, once (``reset``, ``update_config`` and ``close`` log it and go on).
+        the next pair's correction and motion prior use, the wait for the tracker's
+        replenishment (new corners for the next pair, found on the worker), and the refinement
+        of the pair's road plane (``road``), the next pair's start. ``process`` returns the
+        pose before them; a caller with time between pairs (the ROS node, once the odometry is
+        published) calls this to take them out of the time to the next pose. Otherwise the
+        next ``process`` runs them first thing, the road plane on the helper thread next to its
+        tracking (``_settle_road``). Once they ran, the pair's result is complete: its ``rig``
+        is the estimate after its update, its ``timings_ms`` has the tracker's stage times
+        (``track.*``), ``rig`` includes the update, ``road`` the plane (when it ran here) and
+        ``after_pose`` is the time of all (0.0 until then). Nothing to do: returns 0.0. An
+        error of any is raised here, once (``reset``, ``update_config`` and ``close`` log it
+        and go on).
         """
+        return self._settle(road_now=True)
+
+    def _settle(self, road_now: bool) -> float:
+        """``settle``; the road plane is refined before this returns only with ``road_now``."""
         work, self._unsettled = self._unsettled, None
         if work is None:
             return 0.0
-        res, rig_update = work
+        res, rig_update, road = work
         timings = res.timings_ms
         t0 = time.perf_counter()
         try:
@@ -225,6 +236,11 @@ class StereoOdometry:
                 res.rig = self.rig_estimate()
         finally:
             self._join_tracker(timings)
+            self._settle_road(road)
+            if road is not None and road_now:
+                self._take_road_plane()
+                timings['road'] = timings.get('road', 0.0) + self._road_plane_ms
+                self._road_plane_ms = 0.0
             ms = (time.perf_counter() - t0) * 1e3
             timings['after_pose'] = ms
         return ms
@@ -257,7 +273,7 @@ class StereoOdometry:
 
         """
         t_start = time.perf_counter()
-        self.settle()
+        self._settle(road_now=False)
         calib = frame.calibration
         validate_images(frame.left, frame.right, calib)
         stamp = float(frame.stamp_s)
@@ -295,14 +311,15 @@ class StereoOdometry:
             t0 = time.perf_counter()
             prior = self._road_prior(frame, calib, dt)
             timings['road_search'] = (time.perf_counter() - t0) * 1e3
-        left, right, road_images = frame.left, frame.right, None
+        left, right, road_start = frame.left, frame.right, None
         if self.workers.overlaps and self._aligns_road(calib):
-            # The road pyramids are built on the helper next to the tracking: the replenishment
-            # takes the other core from the middle of the tracking to the end of the motion
-            # estimate. In one thread the road step builds them.
+            # The road pyramids are built on the helper next to the tracking, once the tracker
+            # handed it the checks its KLT pass waits for: the replenishment takes the other
+            # core from the middle of the tracking to the end of the motion estimate. In one
+            # thread the road step builds them.
             left, right = self.tracker.grey_pair(left, right)
-            road_images = self._start_road_images(calib, left, right)
-        track = self._track(left, right, calib, prior, timings)
+            road_start = functools.partial(self._start_road_images, calib, left, right)
+        track = self._track(left, right, calib, prior, timings, road_start)
         corr = track.correspondences
         t0 = time.perf_counter()
         if corr is None or len(corr) == 0:
@@ -348,7 +365,8 @@ class StereoOdometry:
                 status = TrackingStatus.LOST
                 message = f'no motion estimate for {self._lost_time:.2f} s ({message})'
         vehicle_fused = ok and self._vehicle_step(dt)
-        road_fused = self._road_step(frame, dt, ok and not calib_changed, timings, road_images)
+        road_fused = self._road_step(frame, dt, ok and not calib_changed, timings,
+                                     track.after_checks)
         self._integrate(dt, lost=status is TrackingStatus.LOST)
         self._rig_prev_left = self.tracker.previous_left()
         self._commit(stamp, calib, status)
@@ -363,7 +381,8 @@ class StereoOdometry:
                     ) -> OdometryResult:
         """Leave the pair's remaining work (see ``settle``) for later; return ``res``."""
         res.timings_ms['after_pose'] = 0.0
-        self._unsettled = (res, rig_update)
+        road, self._road_pending = self._road_pending, None
+        self._unsettled = (res, rig_update, road)
         return res
 
     def _check_velocity_state(self) -> None:
@@ -379,11 +398,10 @@ class StereoOdometry:
         LOG.warning('velocity state is not a valid Gaussian (%s): velocity re-initialised', why)
         self.estimator.reset()
 
-    def _features_plane(self, calib: StereoCalibration) -> tuple[np.ndarray, float] | None:
-        """Ground plane (``fit_ground_plane``) of the tracker's live features, or None."""
-        left, right = self.tracker.feature_points()
-        return fit_ground_plane(triangulate(calib, left, right), self.config.ransac,
-                                self._road_rng)
+    def _features_plane(self, calib: StereoCalibration,
+                        points: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, float] | None:
+        """Ground plane (``fit_ground_plane``) of features' ideal (left, right) pixels, or None."""
+        return fit_ground_plane(triangulate(calib, *points), self.config.ransac, self._road_rng)
 
     def _vehicle_step(self, dt: float) -> bool:
         """
@@ -410,15 +428,26 @@ class StereoOdometry:
         Start the road pyramids of a pair ((H, W) uint8 images, as the tracker sees them).
 
         ``RoadAligner.prepare``: with a helper thread they are built there, next to the
-        caller (OpenCV filters, which release the GIL); the same images either way. The
+        caller (OpenCV filters, which release the GIL), after the previous pair's road plane
+        (``_queue_road_plane``), which sets their first row; the same images either way. The
         images must not change until the result is taken. Returns the pending result
         (``.result()``: the images and the time building them took, ms), or None when the road
         is not aligned.
         """
         if not self._aligns_road(calib):
             return None
-        return self.workers.submit_local(_timed, self.road.prepare, left, right,
-                                         self.road.first_row(calib, self._road_plane))
+        self._queue_road_plane()
+        return self.workers.submit_local(self._prepare_road, calib, left, right,
+                                         self._road_plane_job, self._road_plane)
+
+    def _prepare_road(self, calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
+                      plane_job, plane: RoadPlane | None):
+        """``_start_road_images``' work: the plane is ``plane_job``'s when there is one."""
+        if plane_job is not None:  # done: queued before this on the same helper thread
+            plane = plane_job.result()[0]
+        t0 = time.perf_counter()
+        images = self.road.prepare(left, right, self.road.first_row(calib, plane))
+        return images, (time.perf_counter() - t0) * 1e3
 
     def _road_step(self, frame: StereoFrame, dt: float, measure: bool,
                    timings: dict[str, float], images=None) -> bool:
@@ -429,18 +458,19 @@ class StereoOdometry:
 
         With ``measure`` (the features gave an estimate, same calibration) the road of the
         previous left image is aligned with the current one, starting from the filter's motion,
-        and fused with it (``MotionEstimator.fuse``). Then the road plane of the current pair is
-        refined for the next pair, starting from the previous plane moved by the motion, or
-        from the plane of the current features. Rectified input only. Returns whether the
-        road motion was fused.
+        and fused with it (``MotionEstimator.fuse``). The current pair's road plane, for the
+        next pair, is refined after the pose (``_settle_road``), starting from the previous
+        plane moved by the motion. Rectified input only. Returns whether the road motion was
+        fused.
         """
         calib = frame.calibration
+        t0 = time.perf_counter()
+        self._take_road_plane()
         if not self._aligns_road(calib):
             self._road_images = self._road_plane = None
             return False
         if images is None:
             images = self._start_road_images(calib, *self.tracker.last_pair())
-        t0 = time.perf_counter()
         prev_images, plane = self._road_images, self._road_plane
         images, prepare_ms = images.result()  # this pair, as the tracker converted it
         T_prev_cur = transform_from_velocity(self.estimator.mean, dt) if dt > 0 else None
@@ -453,15 +483,55 @@ class StereoOdometry:
                 if fused:
                     T_prev_cur = transform_from_velocity(self.estimator.mean, dt)
         start = plane.in_frame(T_prev_cur) if plane is not None and measure else None
+        self._road_images, self._road_plane = images, None
+        # The pyramids' time counts wherever they were built, and so does the previous plane's.
+        timings['road'] = (time.perf_counter() - t0) * 1e3 + prepare_ms + self._road_plane_ms
+        self._road_plane_ms = 0.0
+        self._road_pending = (start, images, calib)
+        return fused
+
+    def _settle_road(self, pending: tuple | None) -> None:
+        """
+        Keep the last pair's road plane work (``pending``: ``_road_step``'s) for the next pair.
+
+        With the tracker's features after their replenishment (``settle`` has joined it): the
+        plane falls back on theirs. Unless ``settle`` runs it at once, the next pair hands the
+        work to the helper thread with its road pyramids (``_queue_road_plane``), where it runs
+        next to the KLT passes (which release the GIL), not next to the Python of the rig
+        update and the motion estimate.
+        """
+        if pending is not None:
+            self._road_plane_work = (*pending, self.tracker.feature_points())
+
+    def _queue_road_plane(self) -> None:
+        """Hand the road plane work kept by ``_settle_road`` to the helper thread, if any."""
+        work, self._road_plane_work = self._road_plane_work, None
+        if work is not None:
+            self._road_plane_job = self.workers.submit_local(self._refine_road_plane, *work)
+
+    def _refine_road_plane(self, start: RoadPlane | None, images: RoadImages,
+                           calib: StereoCalibration, points: tuple[np.ndarray, np.ndarray]):
+        """
+        Refine the road plane of a pair; return it (or None) and the time it took (ms).
+
+        From ``start``, the previous plane moved by the motion (``RoadAligner.refine_plane``);
+        without one, or when it is lost, from the plane of the features' ideal (left, right)
+        pixels ``points``.
+        """
+        t0 = time.perf_counter()
         plane = self.road.refine_plane(images, calib, start) if start is not None else None
         if plane is None:  # no previous plane, or it was lost: the features' plane
-            found = self._features_plane(calib)
+            found = self._features_plane(calib, points)
             if found is not None:
                 plane = self.road.refine_plane(images, calib, RoadPlane(*found))
-        self._road_images, self._road_plane = images, plane
-        # The pyramids' time counts wherever they were built.
-        timings['road'] = (time.perf_counter() - t0) * 1e3 + prepare_ms
-        return fused
+        return plane, (time.perf_counter() - t0) * 1e3
+
+    def _take_road_plane(self) -> None:
+        """Wait for the previous pair's road plane (``_queue_road_plane``): ``_road_plane``."""
+        self._queue_road_plane()
+        job, self._road_plane_job = self._road_plane_job, None
+        if job is not None:
+            self._road_plane, self._road_plane_ms = job.result()
 
     def _prior(self, prev_calib: StereoCalibration, calib: StereoCalibration, dt: float):
         """
@@ -489,7 +559,8 @@ class StereoOdometry:
         if not (pcfg.road_speed_search and self.config.tracker.use_motion_prior) or \
                 prev is None or calib.kind != 'rectified':
             return None  # (the tracker would ignore a prior without use_motion_prior)
-        plane = self._features_plane(calib)
+        self._take_road_plane()  # its random draws come first
+        plane = self._features_plane(calib, self.tracker.feature_points())
         if plane is None:
             return None
         speeds = np.arange(-10.0, pcfg.max_speed + 0.5, 1.0)
@@ -517,10 +588,11 @@ class StereoOdometry:
         return ConstantVelocityPrior(prev_calib, calib, dt, velocity, H_prev, H_cur)
 
     def _track(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration, prior,
-               timings: dict[str, float]) -> PendingTrack:
+               timings: dict[str, float], after_checks=None) -> PendingTrack:
         """Track the pair; its replenishment runs on while the caller estimates the motion."""
         t0 = time.perf_counter()
-        track = self.tracker.track_async(left, right, calib, prior=prior)
+        track = self.tracker.track_async(left, right, calib, prior=prior,
+                                         after_checks=after_checks)
         timings['track'] = (time.perf_counter() - t0) * 1e3
         return track
 

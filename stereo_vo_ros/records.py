@@ -210,9 +210,10 @@ class OdometryResult:
     timings_ms : dict
         Milliseconds per stage (``track``, ``estimate``, ``rig``, ...); ``total`` is the time
         ``process`` took (with the previous pair's work after its pose when that ran there).
-        A pair's work after its pose (the rig update, the wait for the tracker's new corners:
-        ``StereoOdometry.settle``) fills in ``after_pose`` (0.0 until then), ``track``,
-        ``track.*`` and ``rig`` once it ran.
+        A pair's work after its pose (the rig update, the wait for the tracker's new corners,
+        the road plane: ``StereoOdometry.settle``) fills in ``after_pose`` (0.0 until then),
+        ``track``, ``track.*``, ``rig`` and ``road`` once it ran; a road plane refined next to
+        the next pair's tracking counts in that pair's ``road``.
     message : str
         Human-readable reason when the status is not OK.
     features : Correspondences or None

@@ -199,7 +199,13 @@ def test_results_with_a_worker_do_not_depend_on_its_kind_or_count(urban):
 
 
 def test_road_profile_does_not_depend_on_the_thread_count(urban, monkeypatch):
-    """The road pyramids are built on the helper thread next to the tracking: same poses."""
+    """
+    The road work on the helper thread gives the poses of one thread.
+
+    The road pyramids are built there next to the tracking, and the road plane of a pair is
+    refined there after its pose: whether the caller settles each pair (the plane is refined
+    then) or not (the next pair queues it behind its aperture checks, ahead of its pyramids).
+    """
     frames, _ = urban
     built = []  # on the caller's thread
     real = StereoOdometry._start_road_images
@@ -210,16 +216,43 @@ def test_road_profile_does_not_depend_on_the_thread_count(urban, monkeypatch):
                      if isinstance(out, parallel._Done) else False)
         return out
     monkeypatch.setattr(StereoOdometry, '_start_road_images', recorded)
+    queued = []  # the helper's work, and where it was queued from
+    submit_local = Workers.submit_local
+
+    def recorded_local(self, fn, *args):
+        queued.append(fn.__name__)
+        return submit_local(self, fn, *args)
+    monkeypatch.setattr(Workers, 'submit_local', recorded_local)
     profile = {'road.enabled': True, 'vehicle.nonholonomic': True}
     runs = {}
-    for threads in (1, 2):
+    for threads, settle in ((1, False), (2, False), (2, True)):
         built.clear()
-        runs[threads] = _run(frames[:12], **profile, **{'pipeline.threads': threads})[1]
+        odometry = StereoOdometry(Config().replace(**profile, **{'pipeline.threads': threads}))
+        runs[threads, settle] = []
+        try:
+            for i, frame in enumerate(frames[:12]):
+                queued.clear()
+                runs[threads, settle].append(odometry.process(frame))
+                in_process = list(queued)
+                queued.clear()
+                if settle:
+                    odometry.settle()
+                if threads == 2 and i >= 2:
+                    later = in_process if not settle else queued
+                    assert later.count('_refine_road_plane') == 1, (settle, i)
+                    if not settle:
+                        order = [in_process.index(n) for n in (
+                            'aperture_checks', '_refine_road_plane', '_prepare_road')]
+                        assert order == sorted(order)
+        finally:
+            odometry.close()
         assert len(built) == 12 and all(built) == (threads == 1)
-    assert sum(r.road_fused for r in runs[1]) >= 8
-    for a, b in zip(runs[1], runs[2]):
-        assert np.array_equal(a.T_world_cam, b.T_world_cam)
-        assert a.road_fused == b.road_fused
+    reference = runs[1, False]
+    assert sum(r.road_fused for r in reference) >= 8
+    for key in ((2, False), (2, True)):
+        for a, b in zip(reference, runs[key]):
+            assert np.array_equal(a.T_world_cam, b.T_world_cam), key
+            assert a.road_fused == b.road_fused
 
 
 @needs_process

@@ -565,6 +565,45 @@ def test_grey_pair_gives_the_images_track_sees():
         converted.grey_pair(left, right[:-2])
 
 
+@pytest.mark.parametrize('threads', [1, 2])
+def test_after_checks_runs_once_behind_the_pairs_helper_work(threads):
+    """
+    ``track_async``'s ``after_checks`` runs once per pair, behind the aperture checks.
+
+    Work it queues on the helper thread runs after them; on a first pair it runs at once. Its
+    return value comes back in ``PendingTrack.after_checks``; the tracking is unchanged.
+    """
+    calib = rectified_calib()
+    workers = Workers(threads, set_opencv=False, kind='thread')
+    tracker, plain = StereoTracker(config(), workers=workers), StereoTracker(config())
+    queued = []  # the helper's work of each pair, in the order it was queued
+    submit_local = workers.submit_local
+
+    def recorded(fn, *args):
+        queued.append(fn.__name__)
+        return submit_local(fn, *args)
+    workers.submit_local = recorded
+    try:
+        for i, m in enumerate((M1, M2, M3)):
+            queued.clear()
+            left, right = pair(m)
+            track = tracker.track_async(left, right, calib,
+                                        after_checks=lambda: queued.append('after') or i)
+            assert track.after_checks == i and queued.count('after') == 1
+            if i == 0:
+                assert queued == ['after']
+            else:
+                assert queued.index('aperture_checks') < queued.index('after')
+            expected = plain.track(left, right, calib).correspondences
+            got = track.result().correspondences
+            assert np.array_equal(got.cur_right, expected.cur_right)
+            assert np.array_equal(got.ids, expected.ids)
+        assert len(got) > 100
+        assert tracker.track_async(left, right, calib).after_checks is None
+    finally:
+        workers.close()
+
+
 def test_caller_reusing_image_buffers_does_not_corrupt_tracking():
     calib = rectified_calib()
     tracker = StereoTracker(config())

@@ -130,6 +130,8 @@ class PendingTrack:
         (N, 2) float64 raw right pixels of the quadruples' current stereo matches as the 2-D
         KLT pass found them, before the affine refinement (which, on rectified input, puts the
         right point on the left point's row): their rows are measured, not copied.
+    after_checks : object
+        What ``track_async``'s ``after_checks`` returned (None without one).
 
     """
 
@@ -138,6 +140,7 @@ class PendingTrack:
     stats: TrackerStats
     stereo_klt_right: np.ndarray
     _job: object
+    after_checks: object = None
 
     def result(self) -> TrackResult:
         """Wait for the replenishment and return the whole ``TrackResult``."""

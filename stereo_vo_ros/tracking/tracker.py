@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -190,7 +190,8 @@ class StereoTracker:
         return self.track_async(left, right, calib, prior).result()
 
     def track_async(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
-                    prior: Prior | None = None) -> 'PendingTrack':
+                    prior: Prior | None = None,
+                    after_checks: Callable[[], Any] | None = None) -> 'PendingTrack':
         """
         Track the features into a new stereo pair; replenish them on a worker thread.
 
@@ -211,6 +212,11 @@ class StereoTracker:
             Motion prior ``(prev_left_ideal, prev_right_ideal) -> (cur_left_pred,
             cur_right_pred)``, (N, 2) float64 ideal pixels each; used as the KLT initial flow
             with ``predicted_pyramid_levels`` when ``use_motion_prior`` is set.
+        after_checks : callable or None
+            Called once, without arguments, as soon as the pair's own work for the helper
+            thread (``Workers.submit_local``: brightness maps, aperture checks) is queued, so
+            that work it queues there runs after it (before the temporal KLT pass; at once
+            on a first pair). Its return value is ``PendingTrack.after_checks``.
 
         Returns
         -------
@@ -238,6 +244,7 @@ class StereoTracker:
         right8 = right8.copy() if np.may_share_memory(right8, right) else right8
         stats = TrackerStats()
         self._photo.enabled = bool(self.cfg.photometric_compensation)
+        after_checks = _Once(after_checks)
         new = None
         if self._prev is None or self._prev[0].shape != left8.shape or \
                 not calib.same_as(self._calib):
@@ -252,12 +259,14 @@ class StereoTracker:
             corr, raw = empty_correspondences(), empty_correspondences()
             klt_right = np.zeros((0, 2))
         else:
-            corr, raw, klt_right, new = self._track_existing(left8, right8, calib, prior, stats)
+            corr, raw, klt_right, new = self._track_existing(left8, right8, calib, prior, stats,
+                                                             after_checks)
+        queued = after_checks()  # (called already when the pair was tracked)
         self._prev = (left8, right8)
         if stats.initialized or self.cfg.replenish_after not in ('stereo', 'temporal'):
             new = self._replenish_survivors(left8, right8, calib, stats, prior)
         self._pending = _Finish(self, left8, right8, stats, corr, raw, new, t_start)
-        return PendingTrack(corr, raw, stats, klt_right, self._pending)
+        return PendingTrack(corr, raw, stats, klt_right, self._pending, queued)
 
     def _start_replenishment(self, left: np.ndarray, right: np.ndarray,
                              calib: StereoCalibration, stats: TrackerStats,
@@ -357,10 +366,13 @@ class StereoTracker:
         return ExpectedFlow(prior, calib, float(np.median(disparity)))
 
     def _track_existing(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
-                        prior: Prior | None, stats: TrackerStats
+                        prior: Prior | None, stats: TrackerStats,
+                        after_checks: Callable[[], Any]
                         ) -> tuple[Correspondences, Correspondences, np.ndarray, object]:
         """
         Track the features of t1 into the pair t2 through every enabled check.
+
+        ``after_checks`` is called once the helper has the aperture checks (``track_async``).
 
         Returns the quadruples (ideal and raw pixels), the raw right points of their stereo
         KLT pass before the affine refinement ((N, 2) float64), and the pending replenishment
@@ -412,6 +424,7 @@ class StereoTracker:
             aperture = self.workers.submit_local(
                 aperture_checks, prev_left, f.left_raw, flow_tracked, win,
                 cfg.affine_win_size_px, cfg.min_eigen_ratio, cfg.min_flow_edge_ratio_tracked)
+        after_checks()
         left_m, spent = self._matched(prev_left, left, None, None, stats)
         t += spent
         passed = None  # aperture: which features may be tracked (None: all)
@@ -689,3 +702,16 @@ class _Finish:
         f = tracker._feats
         return TrackResult(corr, raw, f.left_raw.astype(np.float64),
                            f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
+
+
+class _Once:
+    """A callable (or None) that runs at the first call only; every call returns its result."""
+
+    def __init__(self, fn: Callable[[], Any] | None) -> None:
+        self._fn, self._out = fn, None
+
+    def __call__(self) -> Any:
+        fn, self._fn = self._fn, None
+        if fn is not None:
+            self._out = fn()
+        return self._out
