@@ -723,7 +723,6 @@ def test_long_run_memory_flat_and_path_bounded(harness):
         rig.camera_info()
         order = list(range(60)) + list(range(58, 0, -1))
         marks = {}
-        dropped = 0
         t_start = time.perf_counter()
         for k in range(n_pairs):
             if k == n_pairs // 5:
@@ -733,14 +732,11 @@ def test_long_run_memory_flat_and_path_bounded(harness):
                             else 0, _rss_bytes())
             i = order[k % len(order)]
             rig.send(rig.frames[i].left, rig.frames[i].right, rig.stamp(0) + k * 100_000_000)
-            # At most two pairs in flight: the node is kept busy and rarely drops one (the
-            # newest pair wins while it publishes); a dropped pair gives no odometry.
-            if not rig.odom.wait_count(k - 1 - dropped, 1.0):
-                dropped = rig.count('dropped_pairs')
-                assert rig.odom.wait_count(k - 1 - dropped, 10.0), rig.status()
-        assert harness.wait_for(lambda: rig.odom.count >= n_pairs - rig.count('dropped_pairs'),
-                                10.0)
+            # One pair in flight: the next is sent once this one's odometry arrived, so none is
+            # dropped (the newest pair wins while the node is busy) however slow the machine.
+            assert rig.odom.wait_count(k + 1, 30.0), rig.status()
         elapsed = time.perf_counter() - t_start
+        dropped = rig.count('dropped_pairs')
     finally:
         harness.destroy(sub)
         rig.close()
@@ -748,7 +744,7 @@ def test_long_run_memory_flat_and_path_bounded(harness):
         # allocates (a race in CPython's tracemalloc that can crash the process).
         tracemalloc.stop()
     mid, end = marks[n_pairs // 2], marks[n_pairs - 1]
-    assert rig.odom.count >= 0.95 * n_pairs, rig.odom.count
+    assert rig.odom.count == n_pairs and dropped == 0, (rig.odom.count, dropped)
     assert path_lengths and max(path_lengths) <= path_max and path_lengths[-1] == path_max
     # Second half vs first half: no growth of Python memory, little of the process'.
     assert end[0] - mid[0] < 1_000_000, (mid, end)
