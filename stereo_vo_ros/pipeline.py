@@ -195,6 +195,7 @@ class StereoOdometry:
         """``settle`` where its error must not stop the caller: logged instead."""
         try:
             self.settle()
+            self._take_road_plane()  # left by a pair that stopped before its road step
         except Exception as exc:  # noqa: BLE001 - the caller goes on (reset, close, ...)
             LOG.error("the last pair's work after its pose failed before the %s: %s: %s", why,
                       type(exc).__name__, exc)
@@ -464,8 +465,8 @@ class StereoOdometry:
         fused.
         """
         calib = frame.calibration
+        self._take_road_plane()  # (its own time is ``_road_plane_ms``)
         t0 = time.perf_counter()
-        self._take_road_plane()
         if not self._aligns_road(calib):
             self._road_images = self._road_plane = None
             return False
