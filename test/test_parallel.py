@@ -255,6 +255,42 @@ def test_road_profile_does_not_depend_on_the_thread_count(urban, monkeypatch):
             assert a.road_fused == b.road_fused
 
 
+def test_reset_after_a_failed_pair_leaves_no_road_work_behind(urban, monkeypatch):
+    """
+    A pair that raises after its tracking has queued the last pair's road plane on the helper.
+
+    ``reset()`` waits for that plane and drops it: the odometry then starts over as it does
+    after a reset between two good pairs (the road pyramids of its first pair are not cut by a
+    plane from before).
+    """
+    frames, _ = urban
+    items = {'road.enabled': True, 'vehicle.nonholonomic': True, 'pipeline.threads': 2}
+    runs = []
+    for fail in (True, False):
+        odometry = StereoOdometry(Config().replace(**items))
+        try:
+            for frame in frames[:4]:
+                odometry.process(frame)
+            if fail:
+                estimate = odometry.estimator.estimate
+
+                def failing(*args, **kwargs):
+                    raise RuntimeError('estimator failed')
+                monkeypatch.setattr(odometry.estimator, 'estimate', failing)
+                with pytest.raises(RuntimeError, match='estimator failed'):
+                    odometry.process(frames[4])
+                assert odometry._road_plane_job is not None  # queued, not taken
+                monkeypatch.setattr(odometry.estimator, 'estimate', estimate)
+            odometry.reset()
+            assert odometry._road_plane_job is None and odometry._road_plane is None
+            runs.append([odometry.process(frame) for frame in frames[5:12]])
+        finally:
+            odometry.close()
+    assert sum(r.road_fused for r in runs[1]) >= 4
+    for a, b in zip(*runs):
+        assert np.array_equal(a.T_world_cam, b.T_world_cam)
+
+
 @needs_process
 def test_pipeline_goes_on_identically_when_its_worker_process_dies(urban, caplog):
     """Killing the worker mid-run: a warning, the rest inline, the same poses as one thread."""
