@@ -120,9 +120,8 @@ class StereoOdometry:
         #: Online estimate of the rig's error (``rig``); kept by ``reset()``: it belongs to the
         #: cameras, not to the trajectory. A new calibration starts it over.
         self.rig = RigCalibrator(self.config.rig)
-        #: The last pair's work that its pose did not need (``settle``): that pair's result, its
-        #: rig update (None without one) and its road plane refinement (None without one), or
-        #: None.
+        #: The last pair's work that its pose did not need (``settle``): that pair's result and
+        #: its rig update (None without one), or None.
         self._unsettled: tuple | None = None
         #: The previous pair's road plane to refine (``_road_step``), handed over by
         #: ``settle`` (``_settle_road``), while it is refined on the helper (the job), or None.
@@ -226,7 +225,8 @@ class StereoOdometry:
         work, self._unsettled = self._unsettled, None
         if work is None:
             return 0.0
-        res, rig_update, road = work
+        res, rig_update = work
+        road, self._road_pending = self._road_pending, None
         timings = res.timings_ms
         t0 = time.perf_counter()
         try:
@@ -382,8 +382,7 @@ class StereoOdometry:
                     ) -> OdometryResult:
         """Leave the pair's remaining work (see ``settle``) for later; return ``res``."""
         res.timings_ms['after_pose'] = 0.0
-        road, self._road_pending = self._road_pending, None
-        self._unsettled = (res, rig_update, road)
+        self._unsettled = (res, rig_update)
         return res
 
     def _check_velocity_state(self) -> None:

@@ -33,6 +33,7 @@ of the calibration (identical to raw pixels for rectified input).
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from typing import Any, Callable
@@ -244,7 +245,7 @@ class StereoTracker:
         right8 = right8.copy() if np.may_share_memory(right8, right) else right8
         stats = TrackerStats()
         self._photo.enabled = bool(self.cfg.photometric_compensation)
-        after_checks = _Once(after_checks)
+        after_checks = functools.cache(after_checks or (lambda: None))  # runs once
         new = None
         if self._prev is None or self._prev[0].shape != left8.shape or \
                 not calib.same_as(self._calib):
@@ -702,16 +703,3 @@ class _Finish:
         f = tracker._feats
         return TrackResult(corr, raw, f.left_raw.astype(np.float64),
                            f.right_raw.astype(np.float64), f.ids.copy(), f.ages.copy(), stats)
-
-
-class _Once:
-    """A callable (or None) that runs at the first call only; every call returns its result."""
-
-    def __init__(self, fn: Callable[[], Any] | None) -> None:
-        self._fn, self._out = fn, None
-
-    def __call__(self) -> Any:
-        fn, self._fn = self._fn, None
-        if fn is not None:
-            self._out = fn()
-        return self._out
