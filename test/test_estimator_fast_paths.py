@@ -130,10 +130,9 @@ def test_an_update_can_start_from_the_linearisation_of_another():
     # One step at the start's linearisation: the information-form update with its H and z_bar.
     lin = first.linearization
     step = filt.update(mean, cov, h, z, reweighted, start=lin, max_iterations=1)
-    order = h.measurement_order()
-    r_inv = 1.0 / reweighted[0, order]
+    r_inv = 1.0 / reweighted[0]
     lam = np.linalg.inv(cov) + (lin.Ht * r_inv) @ lin.Ht.T
-    resid = z[0, order] - lin.z_bar - (mean[0] - lin.x) @ lin.Ht
+    resid = z[0] - lin.z_bar - (mean[0] - lin.x) @ lin.Ht
     expected = mean[0] + np.linalg.solve(lam, (lin.Ht * r_inv) @ resid)
     np.testing.assert_allclose(step.mean[0], expected, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(step.cov[0], np.linalg.inv(lam), rtol=1e-9)
@@ -170,6 +169,35 @@ def test_an_update_can_start_from_the_linearisation_of_another():
         np.testing.assert_array_equal(
             point.update(mean, cov, h, z, reweighted, start=first.linearization).mean,
             point.update(mean, cov, h, z, reweighted).mean)
+
+
+def test_the_general_update_takes_over_where_the_compiled_one_cannot():
+    # A prior whose information is not positive definite (one variance negative): the
+    # compiled update gives up on the first such problem and the general code, with its
+    # fallbacks, solves the update.
+    rng = np.random.default_rng(8)
+    _, model = kitti_model(rng)
+    y = np.array([0.3, -0.1, 10.0, 0.02, -0.05, 0.01])
+    z_all = model.predict(y) + rng.normal(0, 0.5, (len(model.X), 4))
+    index = rng.permuted(np.tile(np.arange(60), (10, 1)), axis=1)[:, :3]
+    z, var = z_all[index].reshape(10, -1), np.full((10, 12), 0.5)
+    mean = np.broadcast_to(y, (10, 6))
+    filt = make_filter(Config().filter)
+    h = BatchedMeasurement(model, index=index)
+    for cov, compiled in ((np.diag([4.0] * 3 + [0.01] * 3), True),
+                          (np.diag([4.0] * 3 + [0.01] * 2 + [-1e-9]), False)):
+        scale = np.sqrt(6 + filt.lam)
+        terms = filt._prior_terms(cov, scale)
+        out = filt._update_compiled(y, *terms, h.transfer_inputs(), z, 1.0 / var, 3, False,
+                                    scale, None)
+        assert (out is not None) == compiled
+        general = filt.update(mean, cov, lambda pts: h(pts), z, var, max_iterations=3)
+        update = filt.update(mean, cov, h, z, var, max_iterations=3)
+        if compiled:
+            np.testing.assert_allclose(update.mean, general.mean, rtol=1e-10, atol=1e-11)
+        else:
+            np.testing.assert_array_equal(update.mean, general.mean)
+        np.testing.assert_array_equal(update.iterations, general.iterations)
 
 
 def test_predictions_match_the_projection_matrices():

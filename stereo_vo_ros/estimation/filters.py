@@ -44,12 +44,14 @@ and ``L_{i+1}`` and the step ``Lambda_i^-1 b = U^-T U^-1 b`` from the triangular
 The prior's information and factors are kept for the next update with the same prior (RANSAC,
 the final update and its robust rounds share it), one problem runs on 2-D arrays with LAPACK
 called directly, and a batch of problems keeps the converged ones in the batch (not updated
-any more) instead of regrouping it. A measurement function can offer ``sigma_linearize`` and
-``measurement_order`` (see :class:`~.ransac.BatchedMeasurement`): the first iteration of every
-problem with the frame's prior uses the same sigma points, whose predictions it computes once
-for all problems. One problem's update can take its first step from the last linearisation of
-another update of the same prior and measurements (``start``, a :class:`Linearization`), as the
-estimator's robust reweighting rounds do.
+any more) instead of regrouping it. One problem's update can take its first step from the last
+linearisation of another update of the same prior and measurements (``start``, a
+:class:`Linearization`), as the estimator's robust reweighting rounds do.
+
+The problems of the trifocal transfer model with one prior (RANSAC's hypotheses, the final
+update: a measurement function with ``transfer_inputs``, see
+:class:`~.ransac.BatchedMeasurement`) run the same iterations compiled, one loop per problem
+(:mod:`~.sigma_update`); the code here is the reference for them and runs everything else.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ from typing import Callable, Protocol
 import numpy as np
 from scipy.linalg import lapack
 
+from .sigma_update import sigma_update
 from ..config import FilterConfig
 from ..errors import ConfigError
 
@@ -341,8 +344,8 @@ class _BaseFilter:
             (B, 6, 6) or (6, 6) prior covariance.
         h : MeasurementFn
             Measurement function, states (B, S, 6) -> (B, S, M) pixels. The sigma-point
-            filters use its ``sigma_linearize(x, L, w0, shared)`` when it has one (see
-            :class:`~.ransac.BatchedMeasurement`).
+            filters solve the problems of one with ``transfer_inputs`` compiled when they
+            share the prior (see :class:`~.ransac.BatchedMeasurement`).
         z : np.ndarray
             (B, M) measured pixels (non-finite entries are ignored).
         noise_var : float or np.ndarray
@@ -441,16 +444,20 @@ class _BaseFilter:
         B = mean.shape[0]
         scale = np.sqrt(STATE_DIM + self.lam)
         info_prior, L, L_invT = self._prior_terms(cov, scale)
-        # The first iteration of problems with one prior shares the sigma points.
+        # The transfer model's problems with one prior (RANSAC, the final update) run compiled.
         shared = cov.ndim == 2 and (B == 1 or mean.strides[0] == 0 or
                                     not np.any(mean != mean[0]))
-        linearize = getattr(h, 'sigma_linearize', None)
-        if linearize is not None:  # its measurements in its own order
-            order = h.measurement_order()
-            z, r_inv = z[:, order], r_inv[:, order]
+        transfer = getattr(h, 'transfer_inputs', None)
+        transfer = transfer() if transfer is not None and shared and (
+            B == 1 or start is None) else None
+        if transfer is not None:
+            out = self._update_compiled(mean[0], info_prior, L, L_invT, transfer, z, r_inv,
+                                        max_it, need_cov, scale, start)
+            if out is not None:
+                return out
         if B == 1 and cov.ndim == 2:
             return self._update_sigma_one(mean, h, z, r_inv, max_it, need_cov, scale,
-                                          info_prior, L, L_invT, linearize, start)
+                                          info_prior, L, L_invT, start)
         z_ok = np.isfinite(z)
         all_z_ok = bool(z_ok.all())
         # Every sigma point has a non-zero weight in z_bar: a non-finite D shows in z_bar too.
@@ -463,11 +470,7 @@ class _BaseFilter:
         active = np.ones(B, bool)
         everyone = True  # all problems active
         for it in range(max_it):
-            if linearize is not None:
-                z_bar, D = linearize(x, L, self.w0, shared)
-            else:
-                z_bar, D = sigma_moments(h(sigma_points(x, L, self.w0)), self.w0)
-            shared = False
+            z_bar, D = sigma_moments(h(sigma_points(x, L, self.w0)), self.w0)
             resid = z - z_bar  # (B, M)
             total = resid.sum() if mean_sees_all else resid.sum() + D.sum()
             if not (all_z_ok and np.isfinite(total)):
@@ -522,10 +525,55 @@ class _BaseFilter:
             cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
         return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
 
+    def _update_compiled(self, x0: np.ndarray, info_prior: np.ndarray, L: np.ndarray,
+                         L_invT: np.ndarray, transfer: tuple, z: np.ndarray, r_inv: np.ndarray,
+                         max_it: int, need_cov: bool, scale: float,
+                         start: Linearization | None) -> FilterOutput | None:
+        """
+        :meth:`_update_sigma` of the transfer model's problems with one prior, compiled.
+
+        ``transfer`` is the measurement function's ``transfer_inputs()``: the frame's transfer
+        vectors (4, N), each problem's correspondences (B, n), dt, and the current cameras (see
+        :mod:`~.sigma_update`). Returns None where the compiled update met an information
+        matrix that is not numerically positive definite: the general code then runs.
+        """
+        XT, index, dt, W, o = transfer
+        B, M = z.shape
+        if start is not None and (start.z_bar.shape != (M,) or not np.all(
+                np.isfinite(z[0]) if start.valid is None else np.isfinite(z[0]) | ~start.valid)):
+            start = None  # not taken on these measurements: start at the prior
+        x = np.empty((B, STATE_DIM))
+        lam = np.empty((B, STATE_DIM, STATE_DIM))
+        iterations = np.empty(B, np.int64)
+        converged = np.empty(B, bool)
+        last_x, last_zbar = np.empty(STATE_DIM), np.empty(M)
+        last_Ht, last_valid = np.empty((STATE_DIM, M)), np.empty(M, bool)
+        if start is None:
+            begin = (x0, last_zbar, last_Ht, last_valid)
+        else:
+            begin = (start.x, start.z_bar, np.ascontiguousarray(start.Ht),
+                     np.ones(M, bool) if start.valid is None else start.valid)
+        failed = sigma_update(
+            np.ascontiguousarray(x0), info_prior, L, L_invT, XT, index,
+            np.ascontiguousarray(z), np.ascontiguousarray(r_inv), dt, W, o, self.w0, scale,
+            self.threshold, max_it, self.posterior_spread, *begin, start is not None,
+            x, lam, iterations, converged, last_x, last_zbar, last_Ht, last_valid)
+        if failed >= 0:
+            return None
+        cov_post = None
+        if need_cov:
+            cov_post = np.linalg.inv(lam)
+            cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
+        last = None
+        if B == 1:
+            last = Linearization(last_x, last_zbar, last_Ht,
+                                 None if last_valid.all() else last_valid)
+        return FilterOutput(x, cov_post, iterations, converged | (not self.iterated), last)
+
     def _update_sigma_one(self, mean: np.ndarray, h: MeasurementFn, z: np.ndarray,
                           r_inv: np.ndarray, max_it: int, need_cov: bool, scale: float,
                           info_prior: np.ndarray, L: np.ndarray, L_invT: np.ndarray,
-                          linearize: Callable | None, start: Linearization | None
+                          start: Linearization | None
                           ) -> FilterOutput:
         """:meth:`_update_sigma` for one problem (B = 1, one prior), on 2-D arrays."""
         x0 = mean[0]
@@ -543,10 +591,7 @@ class _BaseFilter:
         lin = start
         for it in range(max_it):
             if lin is None:
-                if linearize is not None:
-                    z_bar, D = linearize(x[None], L, self.w0, it == 0)
-                else:
-                    z_bar, D = sigma_moments(h(sigma_points(x[None], L, self.w0)), self.w0)
+                z_bar, D = sigma_moments(h(sigma_points(x[None], L, self.w0)), self.w0)
                 z_bar, D = z_bar[0], D[0]  # (M,), (6, M)
                 valid = None
                 if not (all_z_ok and np.isfinite(z_bar.sum() if mean_sees_all else

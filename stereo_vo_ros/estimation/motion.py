@@ -138,18 +138,15 @@ class TransferModel:
         self.K_right = cur.K_right
         self.R_rl = cur.R_right_left
         self.t_rl = cur.t_right_left
-        # Both current cameras at once: P(y) = [W R^T | o - W R^T t] with W = [K_L; K_R R_rl]
-        # (6, 3) and o = [0; K_R t_rl].
         self.G, self.F, _, _ = _pair_geometry(calib)
-        _, _, self._W, self._o = _pair_geometry(cur)
+        #: Both current cameras at once: ``P(y) = [W R^T | o - W R^T t]`` with
+        #: ``W = [K_L; K_R R_rl]`` (6, 3) and ``o = [0; K_R t_rl]`` (6,) (pixels).
+        _, _, self.W, self.o = _pair_geometry(cur)
         self.prev_left = np.asarray(prev_left, np.float64)
         self.prev_right = np.asarray(prev_right, np.float64)
         left_t, right_t = self.prev_left.T, self.prev_right.T
         lines = perpendicular_lines_t(self.F, left_t, right_t)
         self.X = transfer_basis_t(self.G, left_t, lines).T  # (N, 4), a transposed view
-        #: Linearisations of h at sigma points shared by many problems, for the filters
-        #: (filled by :class:`~stereo_vo_ros.estimation.ransac.BatchedMeasurement`).
-        self.sigma_cache: dict = {}
 
     def __len__(self) -> int:
         return len(self.X)
@@ -276,7 +273,7 @@ class TransferModel:
         XT = X.swapaxes(-1, -2)
         XT = np.ascontiguousarray(XT if X.ndim == 3 else XT[None])  # (B, 4, N)
         uv = np.empty((4, states.shape[1], X.shape[-2]))
-        _project(states, self.dt, self._W, self._o, XT, uv)
+        _project(states, self.dt, self.W, self.o, XT, uv)
         return uv.reshape((4,) + lead + (X.shape[-2],))
 
 

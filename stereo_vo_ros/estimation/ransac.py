@@ -16,13 +16,11 @@ import math
 
 import numpy as np
 
-from .filters import Filter, sigma_moments, sigma_points_t, STATE_DIM
+from .filters import Filter, STATE_DIM
 from .motion import TransferModel
 from ..config import RansacConfig
 
 SAMPLE_SIZE = 3
-#: Number of points -> BatchedMeasurement.measurement_order.
-_ORDERS: dict = {}
 
 
 def num_samples(probability: float, outlier_ratio: float, sample_size: int = SAMPLE_SIZE,
@@ -41,6 +39,10 @@ class BatchedMeasurement:
     """
     h for B problems that each use their own correspondences (a subset of the frame's).
 
+    The sigma-point filters solve these problems compiled (:mod:`~.sigma_update`, through
+    :meth:`transfer_inputs`); the other filters, and the sigma-point ones where the compiled
+    update does not apply, call it as a measurement function.
+
     Parameters
     ----------
     model : TransferModel
@@ -49,9 +51,6 @@ class BatchedMeasurement:
         (B, n, 4) transfer vectors of each problem, or None for all of the frame's (shared).
     index : np.ndarray, optional
         (B, n) indices of each problem's correspondences in the frame (instead of ``X``).
-        With them the filters' first iteration of problems that share the prior uses the
-        frame's predictions at the shared sigma points, computed once per frame
-        (:meth:`sigma_linearize`).
 
     """
 
@@ -59,10 +58,16 @@ class BatchedMeasurement:
                  index: np.ndarray | None = None) -> None:
         self.model = model
         self.index = None if index is None else np.asarray(index, np.intp)
-        if X is None and index is not None:
+        self._X = X
+
+    @property
+    def X(self) -> np.ndarray | None:
+        """(B, n, 4) transfer vectors of each problem, or None for all of the frame's."""
+        if self._X is None and self.index is not None:
             # (B, n, 4) as a view of a contiguous (B, 4, n): the layout of the products.
-            X = np.swapaxes(np.ascontiguousarray(np.swapaxes(model.X[self.index], 1, 2)), 1, 2)
-        self.X = X
+            self._X = np.swapaxes(np.ascontiguousarray(
+                np.swapaxes(self.model.X[self.index], 1, 2)), 1, 2)
+        return self._X
 
     def __call__(self, states: np.ndarray) -> np.ndarray:
         """Map states (B, S, 6) to predicted pixels (B, S, 4n)."""
@@ -75,77 +80,17 @@ class BatchedMeasurement:
             return BatchedMeasurement(self.model, index=self.index[idx])
         return BatchedMeasurement(self.model, None if self.X is None else self.X[idx])
 
-    def sigma_linearize(self, x: np.ndarray, L: np.ndarray, w0: float, shared: bool = False
-                        ) -> tuple[np.ndarray, np.ndarray]:
+    def transfer_inputs(self) -> tuple | None:
         """
-        Sigma-point mean and half differences of h for B problems (see ``filters``).
+        Return what the compiled update (:mod:`~.sigma_update`) needs, or None (no ``index``).
 
-        Parameters
-        ----------
-        x : np.ndarray
-            (B, 6) states.
-        L : np.ndarray
-            (B, 6, 6) or (6, 6) sigma-point offsets (columns).
-        w0 : float
-            Weight of the centre point.
-        shared : bool
-            All rows of x are equal and L is (6, 6): the sigma points are the same for every
-            problem, and their predictions of all the frame's correspondences are computed
-            once (kept in ``model.sigma_cache``) and gathered.
-
-        Returns
-        -------
-        z_bar (B, 4n) and D (B, 6, 4n), see :func:`~.filters.sigma_moments`; the
-        measurements coordinate by coordinate (see :meth:`measurement_order`).
-
+        The frame's transfer vectors (4, N), each problem's correspondences (B, n), the time
+        step (s) and the current cameras ``W`` (6, 3), ``o`` (6,) (see ``TransferModel``).
         """
-        B = x.shape[0]
-        if shared and (self.index is not None or self.X is None):
-            z_all, D_all = self._shared_moments(x[0], L, w0)  # (N, 4), (N, 6, 4)
-            if self.index is None:
-                M = D_all.shape[0] * 4
-                return (np.broadcast_to(z_all.T.reshape(M), (B, M)),
-                        np.broadcast_to(D_all.transpose(1, 2, 0).reshape(STATE_DIM, M),
-                                        (B, STATE_DIM, M)))
-            D = D_all[self.index].transpose(0, 2, 3, 1)  # (B, 6, 4, n)
-            return (z_all[self.index].swapaxes(1, 2).reshape(B, -1),
-                    D.reshape(B, STATE_DIM, -1))
-        if B == 1 and self.X is not None:  # one problem: 2-D arrays throughout
-            pts = sigma_points_t(x[0], L if L.ndim == 2 else L[0], w0)  # (6, S)
-            Z = self.model.predict_planes(pts, self.X[0])  # (4, S, n)
-            z_bar, D = sigma_moments(Z.transpose(1, 0, 2).reshape(Z.shape[1], -1), w0)
-            return z_bar[None], D[None]
-        pts = sigma_points_t(x, L, w0)  # (6, B, S)
-        Z = self.model.predict_planes(pts, self.X)  # (4, B, S, n)
-        return sigma_moments(Z.transpose(1, 2, 0, 3).reshape(Z.shape[1:3] + (-1,)), w0)
-
-    def measurement_order(self) -> np.ndarray:
-        """
-        Order of :meth:`sigma_linearize`'s measurements in ``__call__``'s (the filters' z).
-
-        Coordinate by coordinate (all u_L, then all v_L, u_R, v_R) instead of point by point.
-        """
-        n = (self.model.X if self.X is None else self.X).shape[-2]
-        order = _ORDERS.get(n)
-        if order is None:
-            order = _ORDERS[n] = (np.arange(n) * 4 + np.arange(4)[:, None]).ravel()
-        return order
-
-    def _shared_moments(self, x: np.ndarray, L: np.ndarray, w0: float
-                        ) -> tuple[np.ndarray, np.ndarray]:
-        """Moments (N, 4), (N, 6, 4) of every correspondence of the frame at one sigma set."""
-        cache = self.model.sigma_cache
-        key = (x.tobytes(), np.asarray(L).tobytes(), w0)
-        hit = cache.get('shared')
-        if hit is not None and hit[0] == key:
-            return hit[1], hit[2]
-        Z = self.model.predict_planes(sigma_points_t(x, L, w0))  # (4, S, N)
-        z_bar, D = sigma_moments(Z.transpose(1, 0, 2).reshape(Z.shape[1], -1), w0)
-        N = Z.shape[-1]  # z_bar (4 N), D (6, 4 N)
-        out = (np.ascontiguousarray(z_bar.reshape(4, N).T),
-               np.ascontiguousarray(D.reshape(STATE_DIM, 4, N).transpose(2, 0, 1)))
-        cache['shared'] = (key,) + out
-        return out
+        if self.index is None:
+            return None
+        m = self.model
+        return np.ascontiguousarray(m.X.T), np.ascontiguousarray(self.index), m.dt, m.W, m.o
 
 
 def reprojection_errors(model: TransferModel, states: np.ndarray, z: np.ndarray,
