@@ -5,7 +5,7 @@ The package's per-point loops that NumPy would run as many small array operation
 refinement, the KLT gradient matrices of the aperture checks, the rig refinement's row
 couplings and bundle adjustment, the road alignment's steps, the estimator's transfer to pixels)
 are compiled with ``kernel`` (``numba.njit`` with ``JIT``). The kernels the pipeline calls are
-compiled as their module is imported, for explicit signatures (compiling takes about 13 s
+compiled as their module is imported, for explicit signatures (compiling takes about 22 s
 once on two cores; later imports load the on-disk cache in ``__pycache__``), so no pair, and no
 job of the worker process, waits for the compiler. They release the GIL, so a helper thread runs
 them next to the caller.
@@ -55,11 +55,14 @@ def _drop_stale_cache(fn) -> None:
     cache = src.parent / '__pycache__'
     marker = cache / f'{src.stem}.jit-{_STAMP}'
     try:
-        if not cache.is_dir() or marker.exists():
+        if marker.exists():
             return
-        for old in [*cache.glob(f'{src.stem}.*.nbi'), *cache.glob(f'{src.stem}.*.nbc'),
-                    *cache.glob(f'{src.stem}.jit-*')]:
-            old.unlink(missing_ok=True)
+        if cache.is_dir():
+            for old in [*cache.glob(f'{src.stem}.*.nbi'), *cache.glob(f'{src.stem}.*.nbc'),
+                        *cache.glob(f'{src.stem}.jit-*')]:
+                old.unlink(missing_ok=True)
+        else:  # no bytecode written yet (PYTHONDONTWRITEBYTECODE): the kernels' cache goes here
+            cache.mkdir()
         marker.touch()
     except OSError:  # not writable: Numba uses the user's cache directory then
         pass

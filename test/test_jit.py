@@ -58,3 +58,20 @@ def test_a_cache_built_against_another_version_of_the_kernel_options_is_dropped(
     jit._CHECKED.discard(tmp_path / 'kernels_mod.py')
     jit._drop_stale_cache(module.f)
     assert kept.exists()
+
+
+def test_a_cache_built_where_no_bytecode_was_written_is_kept(tmp_path):
+    """Without ``__pycache__`` (PYTHONDONTWRITEBYTECODE) the first start marks the new cache."""
+    from stereo_vo_ros import jit
+    (tmp_path / 'fresh_mod.py').write_text('def f():\n    return 1\n')
+    spec = importlib.util.spec_from_file_location('fresh_mod', tmp_path / 'fresh_mod.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    jit._drop_stale_cache(module.f)  # the first start: Numba saves its cache after this
+    cache = tmp_path / '__pycache__'
+    assert (cache / f'fresh_mod.jit-{jit._STAMP}').exists()
+    saved = cache / 'fresh_mod.f-1.py311.nbi'
+    saved.write_bytes(b'x')
+    jit._CHECKED.discard(tmp_path / 'fresh_mod.py')
+    jit._drop_stale_cache(module.f)  # the next start keeps it
+    assert saved.exists()
