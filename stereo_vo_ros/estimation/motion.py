@@ -277,28 +277,6 @@ class TransferModel:
         return uv.reshape((4,) + lead + (X.shape[-2],))
 
 
-@kernel()
-def camera_stack(cx, sx, cy, sy, cz, sz, tx, ty, tz, W, o, P):
-    """
-    Write the stacked current cameras ``[W R^T | o - W R^T t]`` (6, 4) into ``P``.
-
-    ``cx, sx, cy, sy, cz, sz``: the cosines and sines of the rotation angles about x, y and z
-    over the time step (``R = R_Z R_X R_Y``, eq. 6, as ``_rotation_entries``); ``tx, ty, tz``
-    the translation (m); ``W`` (6, 3) and ``o`` (6,) as in ``TransferModel``.
-    """
-    szsx, czsx = sz * sx, cz * sx
-    # R row by row (eq. 6); (W R^T)[r, c] = sum_j W[r, j] R[c, j].
-    r00, r01, r02 = cz * cy - szsx * sy, -sz * cx, cz * sy + szsx * cy
-    r10, r11, r12 = sz * cy + czsx * sy, cz * cx, sz * sy - czsx * cy
-    r20, r21, r22 = -cx * sy, sx, cx * cy
-    for r in range(6):
-        w0, w1, w2 = W[r, 0], W[r, 1], W[r, 2]
-        P[r, 0] = w0 * r00 + w1 * r01 + w2 * r02
-        P[r, 1] = w0 * r10 + w1 * r11 + w2 * r12
-        P[r, 2] = w0 * r20 + w1 * r21 + w2 * r22
-        P[r, 3] = o[r] - (P[r, 0] * tx + P[r, 1] * ty + P[r, 2] * tz)
-
-
 @kernel(numba.types.void(readonly(numba.types.float64, 2), numba.types.float64,
                          readonly(numba.types.float64, 2), readonly(numba.types.float64, 1),
                          readonly(numba.types.float64, 3),
@@ -308,30 +286,41 @@ def _project(states, dt, W, o, XT, out):
     ``TransferModel.predict_planes`` of states (6, S) and transposed transfer vectors (B, 4, N).
 
     State s sees the points ``XT[s // (S // B)]``. For each state the cameras
-    ``P = [W R^T | o - W R^T t]`` (eqs. 6-8, ``camera_stack``), then the six rows of ``P X``
-    over the points and the four pixel coordinates ``(u_L, v_L, u_R, v_R)`` into ``out``
-    (4, S, N); non-finite where a point maps to infinity.
+    ``P = [W R^T | o - W R^T t]`` (eqs. 6-8), then the six rows of ``P X`` over the points and
+    the four pixel coordinates ``(u_L, v_L, u_R, v_R)`` into ``out`` (4, S, N); non-finite
+    where a point maps to infinity.
     """
     n_states, n = states.shape[1], XT.shape[2]
     per = max(n_states // max(XT.shape[0], 1), 1)
     P = np.empty((6, 4))
     h = np.empty((6, n))
-    for k_state in range(n_states):
-        phi, psi, theta = (states[3, k_state] * dt, states[4, k_state] * dt,
-                           states[5, k_state] * dt)
-        camera_stack(math.cos(phi), math.sin(phi), math.cos(psi), math.sin(psi),
-                     math.cos(theta), math.sin(theta), states[0, k_state] * dt,
-                     states[1, k_state] * dt, states[2, k_state] * dt, W, o, P)
-        b = min(k_state // per, XT.shape[0] - 1)
+    for s in range(n_states):
+        phi, psi, theta = states[3, s] * dt, states[4, s] * dt, states[5, s] * dt
+        cz, sz = math.cos(theta), math.sin(theta)
+        cx, sx = math.cos(phi), math.sin(phi)
+        cy, sy = math.cos(psi), math.sin(psi)
+        szsx, czsx = sz * sx, cz * sx
+        # R row by row (eq. 6, as _rotation_entries); (W R^T)[r, c] = sum_j W[r, j] R[c, j].
+        r00, r01, r02 = cz * cy - szsx * sy, -sz * cx, cz * sy + szsx * cy
+        r10, r11, r12 = sz * cy + czsx * sy, cz * cx, sz * sy - czsx * cy
+        r20, r21, r22 = -cx * sy, sx, cx * cy
+        tx, ty, tz = states[0, s] * dt, states[1, s] * dt, states[2, s] * dt
+        for r in range(6):
+            w0, w1, w2 = W[r, 0], W[r, 1], W[r, 2]
+            P[r, 0] = w0 * r00 + w1 * r01 + w2 * r02
+            P[r, 1] = w0 * r10 + w1 * r11 + w2 * r12
+            P[r, 2] = w0 * r20 + w1 * r21 + w2 * r22
+            P[r, 3] = o[r] - (P[r, 0] * tx + P[r, 1] * ty + P[r, 2] * tz)
+        b = min(s // per, XT.shape[0] - 1)
         for r in range(6):
             p0, p1, p2, p3 = P[r, 0], P[r, 1], P[r, 2], P[r, 3]
             for k in range(n):
                 h[r, k] = p0 * XT[b, 0, k] + p1 * XT[b, 1, k] + p2 * XT[b, 2, k] + p3 * XT[b, 3, k]
         for k in range(n):
-            out[0, k_state, k] = h[0, k] / h[2, k]
-            out[1, k_state, k] = h[1, k] / h[2, k]
-            out[2, k_state, k] = h[3, k] / h[5, k]
-            out[3, k_state, k] = h[4, k] / h[5, k]
+            out[0, s, k] = h[0, k] / h[2, k]
+            out[1, s, k] = h[1, k] / h[2, k]
+            out[2, s, k] = h[3, k] / h[5, k]
+            out[3, s, k] = h[4, k] / h[5, k]
 
 
 def project_current(model: TransferModel, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -5,11 +5,10 @@ The iterated sigma-point update of the trifocal transfer model, compiled.
 iterate, the posterior spread) for any measurement function, in NumPy. For the measurement
 function of a frame (:class:`~.ransac.BatchedMeasurement`: problems that each see some of the
 frame's correspondences) this module runs the same iterations as one compiled loop per problem:
-the sigma points, their transfer to pixels (eqs. 6-8, ``motion.camera_stack``), the moments,
-the 6 x 6 information matrix and its reversed Cholesky factor. On a KITTI pair RANSAC's 35
-hypotheses (3 correspondences each, 3 iterations) take about 0.15 ms this way and an update on
-90 inliers about 0.06 ms, against 0.5 and 0.12 ms for the many small NumPy operations of the
-general code.
+the sigma points, their transfer to pixels (eqs. 6-8, as ``motion._project``), the moments,
+the 6 x 6 information matrix and its reversed Cholesky factor. RANSAC's hypotheses (3
+correspondences each) and the final update on the inliers take a few dozen microseconds this
+way instead of the many small NumPy operations of the general code.
 
 A problem whose information matrix is not numerically positive definite is reported instead of
 handled: the caller then runs the general code, which has the fallbacks (and raises where it
@@ -24,7 +23,6 @@ import math
 import numba
 import numpy as np
 
-from .motion import camera_stack
 from ..jit import cholesky, kernel, readonly
 
 STATE_DIM = 6
@@ -45,23 +43,46 @@ _SIGNATURE = numba.types.int64(
 
 
 @kernel()
-def _sigma_cameras(x, L, centre, dt, W, o, work, Ps):
+def _camera(c, s, t, W, o, P):
+    """
+    Write the stacked current cameras ``[W R^T | o - W R^T t]`` (6, 4) into ``P``.
+
+    ``c`` and ``s`` hold the cosines and sines of the rotation angles about x, y and z over the
+    time step (``R = R_Z R_X R_Y``, eq. 6, as ``motion._project``); ``t`` the translation (m).
+    """
+    cx, cy, cz = c[0], c[1], c[2]
+    sx, sy, sz = s[0], s[1], s[2]
+    szsx, czsx = sz * sx, cz * sx
+    r00, r01, r02 = cz * cy - szsx * sy, -sz * cx, cz * sy + szsx * cy
+    r10, r11, r12 = sz * cy + czsx * sy, cz * cx, sz * sy - czsx * cy
+    r20, r21, r22 = -cx * sy, sx, cx * cy
+    for r in range(6):
+        w0, w1, w2 = W[r, 0], W[r, 1], W[r, 2]
+        P[r, 0] = w0 * r00 + w1 * r01 + w2 * r02
+        P[r, 1] = w0 * r10 + w1 * r11 + w2 * r12
+        P[r, 2] = w0 * r20 + w1 * r21 + w2 * r22
+        P[r, 3] = o[r] - (P[r, 0] * t[0] + P[r, 1] * t[1] + P[r, 2] * t[2])
+
+
+@kernel()
+def _sigma_cameras(x, L, centre, dt, W, o, Ps):
     """
     Write the cameras of the sigma points of ``x`` (6,) and offsets ``L`` (6, 6) into ``Ps``.
 
     Order as ``filters.sigma_points``: ``x`` when ``centre``, then ``x + L[:, j]`` and
     ``x - L[:, j]`` for j = 0..5. The angles of a pair are ``a +- d`` with the sines and
     cosines from those of ``a`` and ``d`` (angle addition): half the trigonometric calls.
-    ``work``: (10, 3) scratch.
     """
-    ca, sa, cd, sd, cp, sp, cm, sm, tp, tm = work
+    ca, sa, cd, sd = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    cp, sp, cm, sm = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    tp, tm = np.empty(3), np.empty(3)
     for i in range(3):
         a = x[3 + i] * dt
         ca[i], sa[i] = math.cos(a), math.sin(a)
         tp[i] = x[i] * dt
     c0 = 1 if centre else 0
     if centre:
-        camera_stack(ca[0], sa[0], ca[1], sa[1], ca[2], sa[2], tp[0], tp[1], tp[2], W, o, Ps[0])
+        _camera(ca, sa, tp, W, o, Ps[0])
     for j in range(STATE_DIM):
         for i in range(3):
             d = L[3 + i, j] * dt
@@ -72,10 +93,8 @@ def _sigma_cameras(x, L, centre, dt, W, o, work, Ps):
             sm[i] = sa[i] * cd[i] - ca[i] * sd[i]
             tp[i] = (x[i] + L[i, j]) * dt
             tm[i] = (x[i] - L[i, j]) * dt
-        camera_stack(cp[0], sp[0], cp[1], sp[1], cp[2], sp[2], tp[0], tp[1], tp[2], W, o,
-                     Ps[c0 + j])
-        camera_stack(cm[0], sm[0], cm[1], sm[1], cm[2], sm[2], tm[0], tm[1], tm[2], W, o,
-                     Ps[c0 + STATE_DIM + j])
+        _camera(cp, sp, tp, W, o, Ps[c0 + j])
+        _camera(cm, sm, tm, W, o, Ps[c0 + STATE_DIM + j])
 
 
 @kernel()
@@ -170,8 +189,7 @@ def sigma_update(x0, info_prior, L0, LiT0, XT, index, z, r_inv, dt, W, o, w0, sc
     wi = (1.0 - w0) / (2 * STATE_DIM)
     shared = np.empty((c0 + 2 * STATE_DIM, 6, 4))
     own = np.empty_like(shared)
-    trig = np.empty((10, 3))
-    _sigma_cameras(x0, L0, c0 == 1, dt, W, o, trig, shared)
+    _sigma_cameras(x0, L0, c0 == 1, dt, W, o, shared)
     plus = np.empty(M)
     minus = np.empty(M)
     zbar = np.empty(M)
@@ -212,7 +230,7 @@ def sigma_update(x0, info_prior, L0, LiT0, XT, index, z, r_inv, dt, W, o, w0, sc
                 Ps = shared
                 if it > 0:
                     Ps = own
-                    _sigma_cameras(x, L, c0 == 1, dt, W, o, trig, own)
+                    _sigma_cameras(x, L, c0 == 1, dt, W, o, own)
                 if c0:
                     _transfer(Ps[0], XT, idx, plus)
                     for m in range(M):
