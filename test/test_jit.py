@@ -8,6 +8,7 @@ The kernels themselves are tested where they are used (``test_affine_klt.py``,
 from __future__ import annotations
 
 import importlib.util
+import os
 from pathlib import Path
 import subprocess
 import sys
@@ -75,3 +76,34 @@ def test_a_cache_built_where_no_bytecode_was_written_is_kept(tmp_path):
     jit._CHECKED.discard(tmp_path / 'fresh_mod.py')
     jit._drop_stale_cache(module.f)  # the next start keeps it
     assert saved.exists()
+
+
+def test_a_process_that_compiles_the_kernels_and_one_that_loads_them_agree(tmp_path):
+    """
+    The poses do not depend on whether the kernels were compiled here or taken from the cache.
+
+    The first process compiles every kernel into an empty cache (``NUMBA_CACHE_DIR``), the
+    second loads them; both run the road vehicle profile (tracker, estimator, rig and road
+    kernels) over the same rendered pairs and must give the same poses to the bit.
+    """
+    code = """
+import hashlib
+import numpy as np
+from stereo_vo_ros.config import Config
+from stereo_vo_ros.pipeline import StereoOdometry
+from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
+items = {'road.enabled': True, 'vehicle.nonholonomic': True, 'pipeline.threads': 1}
+odometry = StereoOdometry(Config().replace(**items))
+poses = [odometry.process(frame).T_world_cam for frame in
+         SyntheticSequence(SequenceSpec.preset('urban', n_frames=10, seed=3))]
+print(hashlib.sha1(np.array(poses).tobytes()).hexdigest())
+"""
+    env = {**os.environ, 'NUMBA_CACHE_DIR': str(tmp_path)}
+    digests = []
+    for _ in range(2):
+        done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parents[1], timeout=900, env=env)
+        assert done.returncode == 0, done.stderr
+        digests.append(done.stdout.split()[-1])
+        assert any(tmp_path.rglob('*.nbi'))  # compiled into the empty cache, then loaded
+    assert digests[0] == digests[1]

