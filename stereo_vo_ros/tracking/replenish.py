@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from .affine_klt import refine_matches
-from .detection import bucket_ids, detect_corners
+from .detection import bucket_ids, detect_corners, squared_distances
 from .klt_checks import (disparity_constraint, disparity_in_range, eigen_ratio, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
 from ..config import BucketingConfig, TrackerConfig
@@ -192,7 +192,7 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     guided = np.zeros(len(pts), bool)
     guess = pts.copy()
     if len(job.left_raw):
-        d2 = ((pts[:, None, :] - job.left_raw[None, :, :]) ** 2).sum(axis=2)
+        d2 = squared_distances(pts, job.left_raw)
         nearest = np.argmin(d2, axis=1)
         guided = d2[np.arange(len(pts)), nearest] <= NEIGHBOUR_RADIUS_PX ** 2
         guess = pts + (job.right_raw[nearest] - job.left_raw[nearest])
