@@ -408,9 +408,8 @@ class _BaseFilter:
             active = active[~done]
             if active.size == 0:
                 break
-        cov_post = np.linalg.inv(lam)
-        cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
-        return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
+        return FilterOutput(x, _symmetric_inverse(lam), iterations,
+                            converged | (not self.iterated))
 
     def _prior_terms(self, cov: np.ndarray, scale: float
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -444,12 +443,14 @@ class _BaseFilter:
         B = mean.shape[0]
         scale = np.sqrt(STATE_DIM + self.lam)
         info_prior, L, L_invT = self._prior_terms(cov, scale)
+        if start is not None and not (B == 1 and start.z_bar.shape == z.shape[1:] and np.all(
+                np.isfinite(z[0]) if start.valid is None else np.isfinite(z[0]) | ~start.valid)):
+            start = None  # one problem only, on these measurements: else start at the prior
         # The transfer model's problems with one prior (RANSAC, the final update) run compiled.
         shared = cov.ndim == 2 and (B == 1 or mean.strides[0] == 0 or
                                     not np.any(mean != mean[0]))
         transfer = getattr(h, 'transfer_inputs', None)
-        transfer = transfer() if transfer is not None and shared and (
-            B == 1 or start is None) else None
+        transfer = transfer() if transfer is not None and shared else None
         if transfer is not None:
             out = self._update_compiled(mean[0], info_prior, L, L_invT, transfer, z, r_inv,
                                         max_it, need_cov, scale, start)
@@ -519,10 +520,7 @@ class _BaseFilter:
             if not active.any():
                 break
             everyone = bool(active.all())
-        cov_post = None
-        if need_cov:
-            cov_post = np.linalg.inv(lam_post)
-            cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
+        cov_post = _symmetric_inverse(lam_post) if need_cov else None
         return FilterOutput(x, cov_post, iterations, converged | (not self.iterated))
 
     def _update_compiled(self, x0: np.ndarray, info_prior: np.ndarray, L: np.ndarray,
@@ -539,9 +537,6 @@ class _BaseFilter:
         """
         XT, index, dt, W, o = transfer
         B, M = z.shape
-        if start is not None and (start.z_bar.shape != (M,) or not np.all(
-                np.isfinite(z[0]) if start.valid is None else np.isfinite(z[0]) | ~start.valid)):
-            start = None  # not taken on these measurements: start at the prior
         x = np.empty((B, STATE_DIM))
         lam = np.empty((B, STATE_DIM, STATE_DIM))
         iterations = np.empty(B, np.int64)
@@ -560,10 +555,7 @@ class _BaseFilter:
             x, lam, iterations, converged, last_x, last_zbar, last_Ht, last_valid)
         if failed >= 0:
             return None
-        cov_post = None
-        if need_cov:
-            cov_post = np.linalg.inv(lam)
-            cov_post = 0.5 * (cov_post + np.swapaxes(cov_post, 1, 2))
+        cov_post = _symmetric_inverse(lam) if need_cov else None
         last = None
         if B == 1:
             last = Linearization(last_x, last_zbar, last_Ht,
@@ -585,9 +577,6 @@ class _BaseFilter:
         converged = False
         it = 0
         lam = info_prior
-        if start is not None and (start.z_bar.shape != z.shape or not np.all(
-                z_ok if start.valid is None else z_ok | ~start.valid)):
-            start = None  # not taken on these measurements: start at the prior
         lin = start
         for it in range(max_it):
             if lin is None:
@@ -627,12 +616,15 @@ class _BaseFilter:
             last, lin, x = lin, None, x_new
             if converged:
                 break
-        cov_post = None
-        if need_cov:
-            cov_post = np.linalg.inv(lam)
-            cov_post = (0.5 * (cov_post + cov_post.T))[None]
+        cov_post = _symmetric_inverse(lam)[None] if need_cov else None
         return FilterOutput(x[None], cov_post, np.array([it + 1]),
                             np.array([converged or not self.iterated]), last)
+
+
+def _symmetric_inverse(lam: np.ndarray) -> np.ndarray:
+    """Return the inverses of information matrices (..., 6, 6), symmetrised: covariances."""
+    cov = np.linalg.inv(lam)
+    return 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
 def _all_same(a: np.ndarray) -> bool:

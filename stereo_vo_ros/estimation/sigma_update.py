@@ -24,9 +24,8 @@ import math
 import numba
 import numpy as np
 
+from .motion import STATE_DIM
 from ..jit import cholesky, kernel, readonly
-
-STATE_DIM = 6
 
 _F8 = numba.types.float64
 _SIGNATURE = numba.types.int64(
