@@ -5,7 +5,7 @@ The package's per-point loops that NumPy would run as many small array operation
 refinement, the KLT gradient matrices of the aperture checks, the rig refinement's row
 couplings and bundle adjustment, the road alignment's steps, the estimator's transfer to pixels)
 are compiled with ``kernel`` (``numba.njit`` with ``JIT``). The kernels the pipeline calls are
-compiled as their module is imported, for explicit signatures (compiling takes about 22 s
+compiled as their module is imported, for explicit signatures (compiling takes 20-40 s
 once on two cores; later imports load the on-disk cache in ``__pycache__``), so no pair, and no
 job of the worker process, waits for the compiler. They release the GIL, so a helper thread runs
 them next to the caller.
@@ -86,7 +86,7 @@ def kernel(signatures=None):
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
             if not _UNCACHED:
                 LOG.warning('compiled kernels are not cached (%s): each start compiles them '
-                            'again, which takes a few seconds', exc)
+                            'again, which takes 20-40 s', exc)
             _UNCACHED.append(fn.__qualname__)
             return numba.njit(*args, **{**JIT, 'cache': False})(fn)
     return decorate

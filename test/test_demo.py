@@ -54,3 +54,21 @@ def test_spinning_delivers_callbacks_and_stops_before_shutdown():
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_demo_reports_a_node_that_exits_before_it_subscribes(tmp_path, monkeypatch):
+    """A node that dies at start ends the wait for its subscriptions at once, with its code."""
+    import sys
+
+    from stereo_vo_ros.errors import DatasetError
+    from stereo_vo_ros.ros import demo, process
+
+    # The wait for a starting node is long (its first start compiles the kernels); a node
+    # that exits must not hold the demo for all of it: the error names the exit, not the
+    # timeout.
+    assert demo.NODE_START_TIMEOUT_S >= 2 * demo.FIRST_START_S[1]
+    exiting = [sys.executable, '-c', 'import sys; print("node failed"); sys.exit(3)']
+    monkeypatch.setattr(process, 'node_command', lambda: exiting)
+    with pytest.raises(DatasetError, match=r'the node exited \(code 3\) before it subscribed'):
+        run_demo(tmp_path, frames=3)
+    assert 'node failed' in (tmp_path / 'node.log').read_text()

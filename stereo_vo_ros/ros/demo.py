@@ -16,6 +16,7 @@ The main job end to end: synthetic stereo bag -> ROS 2 node -> trajectory, metri
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 import shutil
@@ -30,6 +31,14 @@ from ..config import Config, to_yaml
 from ..errors import DatasetError
 
 NODE_NAME = 'stereo_vo_node'
+#: How long the first start of the node after an install takes, compiling the pipeline's
+#: kernels before it subscribes (s; two cores, from a quiet to a busy machine).
+FIRST_START_S = (20.0, 40.0)
+#: How long to wait for the node to subscribe, once started (s); a node that exits ends the
+#: wait at once.
+NODE_START_TIMEOUT_S = 180.0
+
+LOG = logging.getLogger(__name__)
 
 
 def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
@@ -49,7 +58,9 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
     config : Config, optional
         Node configuration (default: the defaults).
     timeout_s : float
-        Wall-time budget of the replay (s).
+        Wall-time budget of the replay (s), from when the node has subscribed (its start,
+        which compiles the pipeline's kernels the first time, has a budget of its own:
+        ``NODE_START_TIMEOUT_S``).
     per_frame_timeout_s : float
         How long to wait for the odometry of one pair before publishing the next (s).
 
@@ -110,9 +121,15 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
             executor.add_node(node)
             with spinning(executor):
                 player = BagPlayer(node, bag, topics=topics, rate=None, publish_clock=True)
-                if not player.wait_for_subscribers(30.0, topics=image_topics):
+                LOG.info('waiting for the node to subscribe (its first start after an install '
+                         'compiles the kernels of the pipeline: %.0f-%.0f s)', *FIRST_START_S)
+                if not player.wait_for_subscribers(NODE_START_TIMEOUT_S, topics=image_topics,
+                                                   alive=lambda: proc.poll() is None):
+                    if proc.poll() is not None:
+                        raise DatasetError(f'the node exited (code {proc.returncode}) before it '
+                                           f'subscribed to {image_topics}; see {log_path}')
                     raise DatasetError(f'the node did not subscribe to {image_topics} within '
-                                       f'30 s; see {log_path}')
+                                       f'{NODE_START_TIMEOUT_S:.0f} s; see {log_path}')
                 # ros.qos auto: the node subscribes reliably once it has seen the player's
                 # reliable writers (within a second); replaying before would lose images.
                 deadline_qos = time.monotonic() + 10.0
@@ -122,7 +139,7 @@ def run_demo(out: Path, frames: int | None = None, preset: str = 'demo',
                     time.sleep(0.05)
                 time.sleep(0.5)  # let the node see the publishers (discovery both ways)
                 published: dict[int, int] = {}
-                deadline = t_rendered + timeout_s
+                deadline = time.monotonic() + timeout_s
                 stop = threading.Event()
 
                 def pace(topic: str, stamp_ns: int, msg: Any) -> None:

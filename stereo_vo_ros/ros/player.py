@@ -242,14 +242,18 @@ class BagPlayer:
         return self._publishers[topic]
 
     def wait_for_subscribers(self, timeout_s: float = 10.0, topics: Iterable[str] | None = None,
-                             min_count: int = 1) -> bool:
+                             min_count: int = 1,
+                             alive: Callable[[], bool] | None = None) -> bool:
         """
         Block until every publisher (of ``topics``, default all) has ``min_count`` subscribers.
+
+        ``alive``, when given, is asked between polls (e.g. whether the subscribing process
+        still runs): once it returns False the wait ends at once.
 
         Returns
         -------
         bool
-            True if they all have, False on timeout (s).
+            True if they all have, False on timeout (s) or once ``alive`` returned False.
 
         """
         names = list(topics) if topics is not None else list(self._publishers)
@@ -257,6 +261,8 @@ class BagPlayer:
         while time.monotonic() < deadline:
             if all(self._publishers[t].get_subscription_count() >= min_count for t in names):
                 return True
+            if alive is not None and not alive():
+                return False
             time.sleep(0.02)
         return False
 
