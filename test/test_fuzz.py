@@ -208,7 +208,12 @@ def _edit(left: np.ndarray, right: np.ndarray, edit: str, rng: np.random.Generat
 
 @st.composite
 def stereo_runs(draw):
-    """Draw a calibration near the rendered one and a short run of edited, odd pairs."""
+    """
+    Draw a calibration near the rendered one, a short run of edited, odd pairs, and threads.
+
+    About 30 % of the runs use the worker process (two threads): results do not depend on the
+    thread count (``test_parallel``), and each worker process takes about a second to start.
+    """
     scale = draw(st.sampled_from([1.0] * 4 + [0.5, 2.0, 1e-3, 1e3, 1e6, 1e-9, 1e12]))
     baseline_scale = draw(st.sampled_from([1.0] * 4 + [0.1, 10.0, 1e-5, 1e4, 1e9]))
     cx_shift = draw(st.sampled_from([0.0] * 4 + [40.0, -500.0, 1e5]))
@@ -218,7 +223,8 @@ def stereo_runs(draw):
         st.sampled_from([0.1] * 8 + [0.0, -0.05, 1e-9, 0.5, 3.0, -2.0, 1e4, -1e4]),
         st.sampled_from(FRAME_EDITS)), min_size=2, max_size=6))
     start = draw(st.sampled_from([0.0, 50.0, 1.7e9, -100.0, 1e12]))
-    return scale, baseline_scale, cx_shift, start, steps, draw(st.integers(0, 2**16))
+    threads = draw(st.sampled_from([1, 1, 2]))
+    return scale, baseline_scale, cx_shift, start, steps, draw(st.integers(0, 2**16)), threads
 
 
 def _finite(result: OdometryResult) -> bool:
@@ -231,10 +237,10 @@ def _finite(result: OdometryResult) -> bool:
 @settings(FUZZ, max_examples=100)
 @given(run=stereo_runs())
 # Found by this test: a singular information matrix in the filter escaped as LinAlgError ...
-@example(run=(1e6, 1.0, 0.0, 0.0, [(1, 0.1, 'none')] * 5, 0))
+@example(run=(1e6, 1.0, 0.0, 0.0, [(1, 0.1, 'none')] * 5, 0, 2))
 # ... and coasting made the velocity covariance indefinite (then singular) after 5 frames.
 @example(run=(1.0, 1.0, 0.0, 0.0, [(1, 0.1, 'none')] * 2 + [(0, 0.1, 'black')] * 6 +
-              [(1, 0.1, 'none')] * 4, 0))
+              [(1, 0.1, 'none')] * 4, 0, 2))
 def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, run):
     """
     Odd calibrations, stamps and images: only validation errors, finite and valid results.
@@ -243,7 +249,7 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, r
     320x96 pairs have road enough to align) and the rolling-vehicle prior on.
     """
     spec, rendered = frames
-    scale, baseline_scale, cx_shift, start, steps, seed = run
+    scale, baseline_scale, cx_shift, start, steps, seed, threads = run
     P0, P1 = spec.projections()
     P0, P1 = P0.copy(), P1.copy()
     for P in (P0, P1):
@@ -253,7 +259,8 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, r
     calib = StereoCalibration.from_projections(P0, P1, spec.width, spec.height)
     config = Config().replace(**{'road.enabled': True, 'road.min_pixels': 50,
                                  'vehicle.nonholonomic': True}) if road else Config()
-    vo = StereoOdometry(config)
+    vo = StereoOdometry(config.replace(**{'pipeline.threads': threads}))
+    event(f'{vo.workers.kind} worker')
     rng = np.random.default_rng(seed)
     stamp, index = start, 0
     logging.disable(logging.WARNING)  # the pipeline's warnings are expected here
@@ -288,5 +295,7 @@ def test_pipeline_raises_only_validation_errors_and_stays_finite(frames, road, r
                     result, conv.transform_from_xyz_rpy([0, 0, 0], [-90, 0, -90]))
                 assert odom.is_finite(), (result.status, result.message)
                 assert np.linalg.eigvalsh(odom.pose_covariance).min() > 0
+        vo.settle()  # the last pair's work after its pose raises nothing either
     finally:
         logging.disable(logging.NOTSET)
+        vo.close()
