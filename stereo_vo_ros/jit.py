@@ -18,6 +18,7 @@ import inspect
 import logging
 import math
 from pathlib import Path
+import time
 
 import numba
 import numpy as np
@@ -33,6 +34,9 @@ JIT = {'cache': True, 'nogil': True, 'error_model': 'numpy',
 
 
 _UNCACHED = []  # kernels compiled without the on-disk cache (no writable place for it)
+#: Kernels this process compiled because the on-disk cache did not hold them (the first start
+#: after an install or an update, or no place for the cache), and the seconds that took.
+COMPILED = {'kernels': 0, 'seconds': 0.0}
 #: This module's source, which every kernel's compiled code depends on (options, helpers).
 _STAMP = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()[:12]
 _CHECKED: set = set()
@@ -81,15 +85,42 @@ def kernel(signatures=None):
 
     def decorate(fn):
         _drop_stale_cache(fn)
+        t0 = time.perf_counter()
         try:
-            return numba.njit(*args, **JIT)(fn)
+            compiled = numba.njit(*args, **JIT)(fn)
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
             if not _UNCACHED:
                 LOG.warning('compiled kernels are not cached (%s): each start compiles them '
                             'again, which takes 20-40 s', exc)
             _UNCACHED.append(fn.__qualname__)
-            return numba.njit(*args, **{**JIT, 'cache': False})(fn)
+            compiled = numba.njit(*args, **{**JIT, 'cache': False})(fn)
+        if signatures is not None:
+            _count_compiled(compiled, time.perf_counter() - t0)
+        return compiled
     return decorate
+
+
+def _count_compiled(dispatcher, seconds: float) -> None:
+    """Add an eagerly compiled kernel to ``COMPILED`` unless it came from the cache."""
+    stats = getattr(dispatcher, 'stats', None)  # Numba's cache hits and misses
+    if stats is None or stats.cache_hits:
+        return
+    if not COMPILED['kernels'] and not _UNCACHED:  # else the warning has said it
+        LOG.info('compiling the kernels into %s: the first start after an install or an '
+                 'update takes 20-40 s, later starts load them', stats.cache_path)
+    COMPILED['kernels'] += 1
+    COMPILED['seconds'] += seconds
+
+
+def compile_note() -> str | None:
+    """One line on the kernels this process compiled; None if the cache held them all."""
+    if not COMPILED['kernels']:
+        return None
+    why = ('no place for their cache: every start compiles them' if _UNCACHED else
+           'the first start after an install or an update; later starts load them from the '
+           'cache')
+    kernels, seconds = COMPILED['kernels'], COMPILED['seconds']
+    return f'this start compiled {kernels} kernels in {seconds:.0f} s ({why})'
 
 
 #: The image types the kernels are compiled for (others are converted to float32).

@@ -84,11 +84,16 @@ def test_a_process_that_compiles_the_kernels_and_one_that_loads_them_agree(tmp_p
 
     The first process compiles every kernel into an empty cache (``NUMBA_CACHE_DIR``), the
     second loads them; both run the road vehicle profile (tracker, estimator, rig and road
-    kernels) over the same rendered pairs and must give the same poses to the bit.
+    kernels) over the same rendered pairs and must give the same poses to the bit. The first
+    says, once and as it starts, that it compiles them, and counts them (``jit.compile_note``,
+    which the node logs); the second neither.
     """
     code = """
 import hashlib
+import logging
+logging.basicConfig(level=logging.INFO)
 import numpy as np
+from stereo_vo_ros import jit
 from stereo_vo_ros.config import Config
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
@@ -96,14 +101,19 @@ items = {'road.enabled': True, 'vehicle.nonholonomic': True, 'pipeline.threads':
 odometry = StereoOdometry(Config().replace(**items))
 poses = [odometry.process(frame).T_world_cam for frame in
          SyntheticSequence(SequenceSpec.preset('urban', n_frames=10, seed=3))]
+print(jit.COMPILED['kernels'], jit.compile_note())
 print(hashlib.sha1(np.array(poses).tobytes()).hexdigest())
 """
     env = {**os.environ, 'NUMBA_CACHE_DIR': str(tmp_path)}
-    digests = []
+    digests, compiled, notes = [], [], []
     for _ in range(2):
         done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                               cwd=Path(__file__).resolve().parents[1], timeout=900, env=env)
         assert done.returncode == 0, done.stderr
         digests.append(done.stdout.split()[-1])
+        compiled.append(int(done.stdout.split()[0]))
+        notes.append(done.stderr.count('compiling the kernels into'))
         assert any(tmp_path.rglob('*.nbi'))  # compiled into the empty cache, then loaded
     assert digests[0] == digests[1]
+    assert compiled[0] >= 10 and compiled[1] == 0, compiled
+    assert notes == [1, 0], notes

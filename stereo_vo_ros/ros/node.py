@@ -73,6 +73,7 @@ from .parameters import (  # noqa: F401 (parameter_descriptor re-exported)
     check_params_files, config_updates, declare_config, parameter_descriptor)
 from .sync import StereoPair, StereoSynchronizer
 from .tf_tree import TransformListener
+from .. import jit
 from ..config import Config
 from ..errors import CalibrationError, ConfigError, ImageError
 from ..io.compressed import grey_from_compressed
@@ -171,6 +172,9 @@ class StereoVONode(Node):
             f'({cfg.image_transport}, {cfg.sync} sync, {cfg.qos} QoS, '
             f'{self._config.pipeline.input_kind} input, filter {self._config.filter.type}) -> '
             f'{self.resolve_topic_name("odom")}')
+        compiled = jit.compile_note()
+        if compiled:
+            self.get_logger().info(compiled)
 
     # -- image subscriptions and their QoS ---------------------------------------------
     def _publisher_reliabilities(self) -> list[ReliabilityPolicy]:
