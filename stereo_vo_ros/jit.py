@@ -37,6 +37,8 @@ _UNCACHED = []  # kernels compiled without the on-disk cache (no writable place 
 #: Kernels this process compiled because the on-disk cache did not hold them (the first start
 #: after an install or an update, or no place for the cache), and the seconds that took.
 COMPILED = {'kernels': 0, 'seconds': 0.0}
+#: How long compiling every kernel takes (s; two cores, from a quiet to a busy machine).
+COMPILE_S = (20, 40)
 #: This module's source, which every kernel's compiled code depends on (options, helpers).
 _STAMP = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()[:12]
 _CHECKED: set = set()
@@ -91,7 +93,7 @@ def kernel(signatures=None):
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
             if not _UNCACHED:
                 LOG.warning('compiled kernels are not cached (%s): each start compiles them '
-                            'again, which takes 20-40 s', exc)
+                            'again, which takes %d-%d s', exc, *COMPILE_S)
             _UNCACHED.append(fn.__qualname__)
             compiled = numba.njit(*args, **{**JIT, 'cache': False})(fn)
         if signatures is not None:
@@ -107,7 +109,7 @@ def _count_compiled(dispatcher, seconds: float) -> None:
         return
     if not COMPILED['kernels'] and not _UNCACHED:  # else the warning has said it
         LOG.info('compiling the kernels into %s: the first start after an install or an '
-                 'update takes 20-40 s, later starts load them', stats.cache_path)
+                 'update takes %d-%d s, later starts load them', stats.cache_path, *COMPILE_S)
     COMPILED['kernels'] += 1
     COMPILED['seconds'] += seconds
 

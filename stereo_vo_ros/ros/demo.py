@@ -29,11 +29,12 @@ from scipy.spatial.transform import Rotation
 
 from ..config import Config, to_yaml
 from ..errors import DatasetError
+from ..jit import COMPILE_S
 
 NODE_NAME = 'stereo_vo_node'
 #: How long the first start of the node after an install takes, compiling the pipeline's
-#: kernels before it subscribes (s; two cores, from a quiet to a busy machine).
-FIRST_START_S = (20.0, 40.0)
+#: kernels before it subscribes (s).
+FIRST_START_S = COMPILE_S
 #: How long to wait for the node to subscribe, once started (s); a node that exits ends the
 #: wait at once.
 NODE_START_TIMEOUT_S = 180.0
