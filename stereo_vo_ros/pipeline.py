@@ -564,7 +564,8 @@ class StereoOdometry:
         if plane is None:
             return None
         speeds = np.arange(-10.0, pcfg.max_speed + 0.5, 1.0)
-        found = road_speed(prev, self.tracker.as_grey(frame.left), calib, plane, dt, speeds)
+        found = road_speed(prev, self.tracker.as_grey(frame.left), calib, plane, dt, speeds,
+                           self.tracker.last_pair()[1])
         if not (abs(found.speed) >= ROAD_MIN_SPEED and found.contrast <= ROAD_MAX_CONTRAST):
             return None
         LOG.info('velocity unknown: tracking with %.0f m/s forward from the road', found.speed)

@@ -52,6 +52,25 @@ ROAD_BLUR_PX = 1.5
 ROAD_MAX_DIFFERENCE = 30.0
 #: Road alignment: fewest road pixels that must be compared for a hypothesis to count.
 ROAD_MIN_PIXELS = 500
+#: ``cv2.remap`` maps are split into rows of this many points (it takes at most 32767 columns).
+REMAP_COLUMNS = 1024
+#: Road alignment: a pixel sees the road when its left and right grey levels, matched at the
+#: plane's disparity, differ by less than this many robust scales (after a gain and offset).
+ROAD_STEREO_SCALES = 3.0
+#: Road alignment: smallest robust scale of those stereo differences (grey levels).
+ROAD_STEREO_MIN_SCALE = 1.0
+
+
+def sample_bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` (H, W[, C]) at pixels (u, v) (N,): (N,) or (N, C) float."""
+    n = len(u)
+    m = -(-n // REMAP_COLUMNS) * REMAP_COLUMNS
+    uu = np.zeros(m, np.float32)
+    vv = np.zeros(m, np.float32)
+    uu[:n], vv[:n] = u, v
+    out = cv2.remap(img, uu.reshape(-1, REMAP_COLUMNS), vv.reshape(-1, REMAP_COLUMNS),
+                    cv2.INTER_LINEAR)
+    return out.reshape((m,) + img.shape[2:])[:n]
 
 
 def triangulate(calib: StereoCalibration, left: np.ndarray, right: np.ndarray) -> np.ndarray:
@@ -191,7 +210,8 @@ class RoadSpeed:
 
 
 def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibration,
-               plane: tuple[np.ndarray, float], dt: float, speeds: np.ndarray) -> RoadSpeed:
+               plane: tuple[np.ndarray, float], dt: float, speeds: np.ndarray,
+               prev_right: np.ndarray | None = None) -> RoadSpeed:
     """
     Forward speed that best maps the road of the previous left image onto the current one.
 
@@ -208,6 +228,12 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
     speed then predicts where the features went. The sign convention: a positive speed moves
     the camera forward (+z).
 
+    With ``prev_right``, only pixels that see the road are compared: those whose left and
+    right grey levels agree at the plane's disparity (``road_pixels_seen``). A vehicle ahead
+    covers part of the road region; its pixels match best at rest, since it keeps pace, and
+    drowned the road's minimum (rendered highway seed 23: contrast 0.95 at the true 24 m/s,
+    0.54 with them left out).
+
     Parameters
     ----------
     prev_left, cur_left : np.ndarray
@@ -220,6 +246,8 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
         Time between the images (s).
     speeds : np.ndarray
         (S,) forward speeds to try (m/s); must include 0.
+    prev_right : np.ndarray, optional
+        (H, W) uint8 rectified right image at t-1.
 
     Returns
     -------
@@ -239,9 +267,18 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
     speeds = np.asarray(speeds, np.float64)
     if np.count_nonzero(on_road) < ROAD_MIN_PIXELS or not dt > 0:
         return RoadSpeed(math.nan, math.nan)
-    X = ray[on_road] * depth[on_road, None]
     blur_prev = cv2.GaussianBlur(prev_left, (0, 0), ROAD_BLUR_PX).astype(np.float32)
     blur_cur = cv2.GaussianBlur(cur_left, (0, 0), ROAD_BLUR_PX).astype(np.float32)
+    if prev_right is not None:
+        blur_right = cv2.GaussianBlur(prev_right, (0, 0), ROAD_BLUR_PX).astype(np.float32)
+        idx = np.flatnonzero(on_road)
+        seen = road_pixels_seen(blur_prev, blur_right, xs[idx], ys[idx],
+                                f * calib.baseline_m / depth[idx])
+        on_road = np.zeros_like(on_road)
+        on_road[idx[seen]] = True
+        if np.count_nonzero(on_road) < ROAD_MIN_PIXELS:
+            return RoadSpeed(math.nan, math.nan)
+    X = ray[on_road] * depth[on_road, None]
     ref = blur_prev[ys[on_road].astype(int), xs[on_road].astype(int)]
     score = np.full(len(speeds), np.inf)
     for k, speed in enumerate(speeds):
@@ -252,7 +289,7 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
         seen = (z > ROAD_DEPTH_RANGE_M[0] / 2) & (u >= 0) & (u < w - 1) & (v >= 0) & (v < h - 1)
         if np.count_nonzero(seen) < ROAD_MIN_PIXELS:
             continue
-        moved = cv2.remap(blur_cur, u[seen][None], v[seen][None], cv2.INTER_LINEAR)[0]
+        moved = sample_bilinear(blur_cur, u[seen], v[seen])
         score[k] = float(np.mean(np.minimum(np.abs(moved - ref[seen]), ROAD_MAX_DIFFERENCE)))
     at_rest = int(np.argmin(np.abs(speeds)))
     best = int(np.argmin(score))
@@ -261,3 +298,44 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
     if score[best] >= score[at_rest]:  # includes identical images (all differences 0)
         return RoadSpeed(float(speeds[at_rest]), 1.0)
     return RoadSpeed(float(speeds[best]), float(score[best] / score[at_rest]))
+
+
+def road_pixels_seen(left: np.ndarray, right: np.ndarray, xs: np.ndarray, ys: np.ndarray,
+                     disparity: np.ndarray) -> np.ndarray:
+    """
+    Return which road pixels the stereo pair shows as road: (N,) bool.
+
+    Each left pixel (xs, ys) is compared with the right image at its disparity on the ground
+    plane (pixels; rectified pair, so the same row). Where something stands in front of the
+    road (a vehicle, a pedestrian, a wall) the pixel shows a nearer surface, whose right image
+    lies farther left, and the two grey levels differ where it has texture. The right camera's
+    gain and offset are fitted first (least squares); kept are the pixels within
+    ``ROAD_STEREO_SCALES`` robust scales of the differences (1.4826 times their median
+    absolute value, at least ``ROAD_STEREO_MIN_SCALE``). A match outside the right image is
+    not kept. Textureless pixels agree at any disparity and are kept: they weigh alike in every
+    speed's score.
+
+    Parameters
+    ----------
+    left, right : np.ndarray
+        (H, W) float32 rectified images (blurred alike).
+    xs, ys : np.ndarray
+        (N,) integer-valued left pixel coordinates (x right, y down).
+    disparity : np.ndarray
+        (N,) disparity of the plane at those pixels (pixels, positive).
+
+    """
+    ur = np.asarray(xs - disparity, np.float32)
+    inside = ur >= 0
+    seen = np.zeros(len(xs), bool)
+    if np.count_nonzero(inside) < 2:
+        return seen
+    idx = np.flatnonzero(inside)
+    grey_r = sample_bilinear(right, ur[idx], ys[idx]).astype(np.float64)
+    grey_l = left[ys[idx].astype(int), xs[idx].astype(int)].astype(np.float64)
+    design = np.stack([grey_r, np.ones_like(grey_r)], axis=1)
+    gain_offset = np.linalg.lstsq(design, grey_l, rcond=None)[0]
+    diff = np.abs(design @ gain_offset - grey_l)
+    scale = max(1.4826 * float(np.median(diff)), ROAD_STEREO_MIN_SCALE)
+    seen[idx[diff < ROAD_STEREO_SCALES * scale]] = True
+    return seen

@@ -48,6 +48,7 @@ import cv2
 import numba
 import numpy as np
 
+from .ground_plane import sample_bilinear
 from ..config import RansacConfig, RoadConfig
 from ..estimation.camera import StereoCalibration
 from ..estimation.motion import velocity_from_transform
@@ -66,8 +67,6 @@ CAUCHY_SCALES = 2.0
 SCALE_SUBSAMPLE = 4
 #: Floor of the residual scale (grey levels).
 MIN_SCALE = 0.5
-#: ``cv2.remap`` maps are split into rows of this many points (it takes at most 32767 columns).
-REMAP_COLUMNS = 1024
 #: A road pixel agrees with the plane when its stereo residual is within this many robust
 #: scales (grey levels).
 STEREO_INLIER_SCALES = 3.0
@@ -187,18 +186,6 @@ class RoadMotion:
     components: list
     pixels: int
     scale: float
-
-
-def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` (H, W[, C]) at pixels (u, v) (N,): (N,) or (N, C) float."""
-    n = len(u)
-    m = -(-n // REMAP_COLUMNS) * REMAP_COLUMNS
-    uu = np.zeros(m, np.float32)
-    vv = np.zeros(m, np.float32)
-    uu[:n], vv[:n] = u, v
-    out = cv2.remap(img, uu.reshape(-1, REMAP_COLUMNS), vv.reshape(-1, REMAP_COLUMNS),
-                    cv2.INTER_LINEAR)
-    return out.reshape((m,) + img.shape[2:])[:n]
 
 
 def _scale(r: np.ndarray) -> float:
@@ -561,7 +548,7 @@ class RoadAligner:
             if len(us) < self.cfg.min_pixels * level.scale ** 2:
                 return None
             ray = np.ascontiguousarray(X / X[2])  # (3, N), z = 1
-            tmpl = _sample(level.left_grad, us, vs - level.row0)  # value, d/du, d/dv
+            tmpl = sample_bilinear(level.left_grad, us, vs - level.row0)  # value, d/du, d/dv
             ref = tmpl[:, 0]
             grids.insert(0, (level, fb, us, vs, ray, tmpl))
             for _ in range(self.cfg.stereo_iterations):
@@ -616,7 +603,7 @@ class RoadAligner:
             ok = None
         else:
             ur, vs, ref = ur[ok], vs[ok], ref[ok]
-        sampled = _sample(level.right_grad, ur, vs - level.row0)
+        sampled = sample_bilinear(level.right_grad, ur, vs - level.row0)
         return gain * sampled[:, 0] + offset - ref, ok, sampled
 
     def align(self, prev: RoadImages, cur: RoadImages, calib: StereoCalibration,
@@ -670,7 +657,7 @@ class RoadAligner:
             if len(us) < need or not dt > 0:
                 return None
             if tmpl is None:
-                tmpl = _sample(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
+                tmpl = sample_bilinear(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
             iterations = self.cfg.motion_iterations if index == 0 else self.cfg.coarse_iterations
             h, w = lc.left.shape
             X = np.ascontiguousarray(X, np.float64)
@@ -683,7 +670,7 @@ class RoadAligner:
                                      float(lc.row0), lc.row0 + h - 1.0, proj, alive)
                 if n_ok < need:
                     return None
-                cur_s = _sample(lc.left_grad, proj[0], proj[1] - lc.row0)
+                cur_s = sample_bilinear(lc.left_grad, proj[0], proj[1] - lc.row0)
                 # The exposure may change between the pairs: r = g I_cur + o - I_prev.
                 n_r = _road_residuals(cur_s, tmpl, alive, float(gain), float(offset), r, r_alive)
                 # ESM (Benhimane & Malis): the mean of the current image's gradient and the
