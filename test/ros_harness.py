@@ -27,6 +27,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from stereo_vo_ros.jit import COMPILE_S
 from stereo_vo_ros.ros import conversions as conv
 from stereo_vo_ros.ros.node import StereoVONode
 
@@ -48,6 +49,10 @@ def domain_id(salt: int = 0) -> int:
     """
     return 1 + (os.getpid() * 7 + 3 + 37 * salt) % 200
 
+
+#: Seconds a node process may take to subscribe: its start, and the first compile of the
+#: kernels when their cache is cold (a fresh checkout on a loaded two-core machine).
+NODE_START_S = 30.0 + COMPILE_S[1]
 
 #: QoS of /rosout (rcl publishes it reliable and transient local).
 ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,

@@ -23,7 +23,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
-from ros_harness import composed_node, domain_id, Harness
+from ros_harness import composed_node, domain_id, Harness, NODE_START_S
 from ros_harness import stamp_ns as _stamp_ns, values as _values
 from rosbags.rosbag2 import Writer
 from rosbags.typesys import get_typestore, Stores
@@ -216,7 +216,8 @@ def _paced_play(h: Harness, player: BagPlayer, timeout_s: float = 5.0, **kwargs)
 
 
 def _wait_for_node(h: Harness, player: BagPlayer, odom_topic: str = '/odom') -> None:
-    assert player.wait_for_subscribers(30.0), 'the node did not subscribe to the bag topics'
+    assert player.wait_for_subscribers(NODE_START_S), \
+        'the node did not subscribe to the bag topics'
     assert h.wait_for(lambda: h.node.count_publishers(odom_topic) >= 1, 30.0)
     assert h.wait_for(lambda: h.node.count_subscribers('/clock') >= 1, 10.0)
     # Discovery is not symmetric: give the node's readers time to match the player's writers

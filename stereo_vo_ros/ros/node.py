@@ -84,6 +84,12 @@ from ..records import OdometryResult, StereoFrame, TrackingStatus
 SYNC_QUEUE_SIZE = 10
 #: Seconds (wall) between two looks at the image publishers' QoS (``ros.qos: auto``).
 QOS_CHECK_PERIOD_S = 1.0
+#: History depth of the image subscriptions (messages per side). The callbacks only pair
+#: images, but the worker thread's Python holds the GIL for stretches: on a loaded two-core
+#: machine the executor took images off the DDS queue late, and with the sensor-data depth of
+#: 5 it lost 1-10 of 40 pairs sent at 10 Hz, with either publisher QoS. 20 holds two seconds
+#: at 10 Hz; it costs memory only while the executor is behind.
+IMAGE_QUEUE_DEPTH = 20
 
 
 class StereoVONode(Node):
@@ -204,7 +210,7 @@ class StereoVONode(Node):
         """(Re)create the two image subscriptions with the given reliability."""
         for sub in self._image_subs:
             self.destroy_subscription(sub)
-        qos = QoSProfile(depth=qos_profile_sensor_data.depth, reliability=reliability)
+        qos = QoSProfile(depth=IMAGE_QUEUE_DEPTH, reliability=reliability)
         self._image_subs = [
             self.create_subscription(self._image_type, topic,
                                      lambda m, side=side: self._on_image(side, m), qos)
