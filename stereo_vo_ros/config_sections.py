@@ -187,7 +187,9 @@ class FilterConfig:
         'linearisation of the one before, about 0.2 ms at 200 features).', 1, 20,
         dynamic=True)
     velocity_process_noise: float = _f(
-        2.0, 'Process noise std of linear velocity per frame (m/s).', 1e-6, 1e3, dynamic=True)
+        2.0, 'Process noise std of linear velocity per frame (m/s); with '
+        'vehicle.acceleration_std set, that acceleration times the time between the pairs '
+        'instead.', 1e-6, 1e3, dynamic=True)
     angular_process_noise_deg: float = _f(
         10.0, 'Process noise std of angular velocity per frame (deg/s).', 1e-6, 1e4,
         dynamic=True)
@@ -395,6 +397,14 @@ class VehicleConfig:
         10.8, 'Fuse only when the squared Mahalanobis distance of the estimate from the prior '
         'is below this (10.8: the 99.9 % point for one component); a vehicle that does slide '
         'keeps its estimate.', 0.0, 1e9, dynamic=True)
+    acceleration_std: float = _f(
+        0.0, "Standard deviation of a road vehicle's acceleration along each camera axis "
+        '(m/s^2; 0: off). With it, the process noise std of the linear velocity from one pair '
+        'to the next is this times the time between them, in place of '
+        'filter.velocity_process_noise per frame: a car brakes at up to about 1 g (two '
+        'standard deviations at 5 m/s^2), so a few features on vehicles that keep pace cannot '
+        'take half its speed within a tenth of a second. Off by default: drones and hand-held '
+        'cameras accelerate faster.', 0.0, 1e3, dynamic=True)
 
 
 @dataclass

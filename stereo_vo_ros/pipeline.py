@@ -325,7 +325,7 @@ class StereoOdometry:
         t0 = time.perf_counter()
         if corr is None or len(corr) == 0:
             est = None
-            self.estimator.coast()
+            self.estimator.coast(dt=dt)
         else:
             tcfg = self.config.tracker
             coupling = self.rig.couplings(corr, prev_calib, calib, self._rig_prev_left,

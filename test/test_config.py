@@ -80,12 +80,12 @@ def test_command_line_overrides():
 
 
 def test_road_vehicle_overlay_turns_on_the_road_parts_only():
-    """config/road_vehicle.yaml: the road alignment and the vehicle prior, the rest default."""
+    """config/road_vehicle.yaml: the road alignment and the vehicle's motion, the rest default."""
     cfg = load(REPO / 'config' / 'road_vehicle.yaml')
-    assert cfg.road.enabled and cfg.vehicle.nonholonomic
+    assert cfg.road.enabled and cfg.vehicle.nonholonomic and cfg.vehicle.acceleration_std == 5.0
     changed = {name for (name, value, _), (_, default, _) in zip(cfg.items(), Config().items())
                if value != default}
-    assert changed == {'road.enabled', 'vehicle.nonholonomic'}
+    assert changed == {'road.enabled', 'vehicle.nonholonomic', 'vehicle.acceleration_std'}
 
 
 def test_yaml_comments_are_wrapped():

@@ -359,6 +359,45 @@ def test_coasting_keeps_the_velocity_covariance_positive_definite():
     np.testing.assert_allclose(est.mean, y, atol=0.05)  # coasting keeps the velocity
 
 
+def test_acceleration_std_sets_the_velocity_process_noise_from_the_time_step():
+    """vehicle.acceleration_std: the linear velocities may change by about a * dt per pair."""
+    per_frame = MotionEstimator(Config())
+    car = MotionEstimator(Config().replace(**{'vehicle.acceleration_std': 3.0}))
+    angular = np.deg2rad(Config().filter.angular_process_noise_deg) ** 2
+    np.testing.assert_allclose(np.diag(per_frame.process_noise(0.1)), [4.0] * 3 + [angular] * 3)
+    np.testing.assert_allclose(np.diag(car.process_noise(0.1)), [0.09] * 3 + [angular] * 3)
+    np.testing.assert_allclose(np.diag(car.process_noise(1 / 30)), [0.01] * 3 + [angular] * 3)
+    # Without a time step (or a bad one) the per-frame value applies.
+    for dt in (None, 0.0, -0.1):
+        np.testing.assert_allclose(np.diag(car.process_noise(dt))[:3], [4.0] * 3)
+    # A pair without an estimate inflates the rates' covariance but widens a car's velocity by
+    # its acceleration only.
+    for est, linear in ((per_frame, 2 * (1e-4 + 4.0)), (car, 1e-4 + 0.09)):
+        est.cov = np.eye(6) * 1e-4
+        est.coast(inflation=2.0, dt=0.1)
+        np.testing.assert_allclose(np.diag(est.cov), [linear] * 3 + [2 * (1e-4 + angular)] * 3)
+    # Features that say the car lost 12 m/s within 0.1 s (more than 12 g): with the per-frame
+    # noise the estimate follows them, a car's acceleration takes them for outliers.
+    rng = np.random.default_rng(5)
+    calib = kitti_calibration()
+    cruise = np.array([0.0, 0.0, 25.0, 0.0, 0.0, 0.0])
+    braked = np.array([0.0, 0.0, 13.0, 0.0, 0.0, 0.0])
+    corr = Correspondences(*observe(calib, random_scene(rng, 30),
+                                    transform_from_velocity(braked, 0.1)))
+    corr.cur_left += rng.normal(0, 0.5, corr.cur_left.shape)
+    corr.cur_right += rng.normal(0, 0.5, corr.cur_right.shape)
+    speeds = []
+    for accel in (0.0, 3.0):
+        est = MotionEstimator(Config().replace(**{'vehicle.acceleration_std': accel}))
+        est.reset(cruise)
+        est.cov = np.diag([0.05 ** 2] * 3 + [1e-6] * 3)
+        out = est.estimate(corr, calib, 0.1)
+        assert out.status is TrackingStatus.OK
+        speeds.append(out.velocity[2])
+    assert speeds[0] < 17.0
+    assert speeds[1] > 24.0
+
+
 def test_num_samples_eq14():
     assert num_samples(0.99, 0.5, 3) == 35
     assert num_samples(0.99, 0.2, 3) == 7

@@ -1,10 +1,12 @@
 """Vehicles that move with the camera: ground-plane weights, outlier streaks, uninformed prior."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
-from stereo_vo_ros.config import Config
+from stereo_vo_ros.config import Config, load
 from stereo_vo_ros.estimation.camera import StereoCalibration
 from stereo_vo_ros.estimation.estimator import MotionEstimator
 from stereo_vo_ros.estimation.motion import TransferModel, transform_from_velocity
@@ -15,6 +17,8 @@ from stereo_vo_ros.road.ground_plane import (
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 
 from test_estimator_core import kitti_calibration, observe, raw_rig
+
+REPO = Path(__file__).resolve().parents[1]
 
 CAMERA_HEIGHT_M = 1.65
 #: Forward motion at 25 m/s (camera optical frame: z forward).
@@ -389,3 +393,22 @@ def test_rendered_highway_behind_buses_at_speed_starts_with_the_road(search):
         assert np.median(ratios) > 0.95 and min(ratios) > 0.8
     else:
         assert np.median(ratios) < 0.5  # the failure the search exists for
+
+
+def test_road_vehicle_profile_keeps_its_speed_past_vehicles_that_keep_pace():
+    """
+    Highway seed 10: the profile keeps the speed next to buses that keep pace.
+
+    A bare stretch leaves about ten static features next to them. Within two pairs the features
+    said the car had lost most of its 23 m/s; a car's acceleration (vehicle.acceleration_std
+    in the profile) does not allow that.
+    """
+    calib, frames = render_pairs('highway', 10, 30, n_frames=150)
+    profile = load(REPO / 'config' / 'road_vehicle.yaml')
+    assert profile.vehicle.acceleration_std > 0
+    ratios, _ = step_ratios(profile.replace(**{'vehicle.acceleration_std': 0.0}), calib,
+                            frames)
+    assert min(ratios) < 0.6  # the failure the acceleration bound is for
+    ratios, statuses = step_ratios(profile, calib, frames)
+    assert all(status is TrackingStatus.OK for status in statuses)
+    assert np.all(np.abs(ratios - 1) < 0.1)

@@ -4,7 +4,8 @@ Frame-to-frame egomotion from stereo correspondences (Kitt et al., section III).
 :class:`MotionEstimator` holds the filter state (the velocity and its covariance) and, for each
 new set of correspondences between the previous and the current stereo pair, runs
 
-1. the constant-velocity prediction ``y_k+1 = y_k + w_k`` (``P += Q``),
+1. the constant-velocity prediction ``y_k+1 = y_k + w_k`` (``P += Q``; Q per frame, or for the
+   linear velocity ``vehicle.acceleration_std`` times the time step: not in the papers),
 2. bucketing of the correspondences (section III-C), leaving out the features that were clear
    outliers of the accepted motion in the last ``ransac.max_outlier_streak`` frames (not in
    the papers: they keep features on moving vehicles out),
@@ -166,12 +167,21 @@ class MotionEstimator:
         return np.diag([f.initial_velocity_std ** 2] * 3 +
                        [np.deg2rad(f.initial_angular_std_deg) ** 2] * 3)
 
-    def process_noise(self) -> np.ndarray:
-        """Q (6, 6): per-frame random walk of the velocities."""
+    def process_noise(self, dt: float | None = None) -> np.ndarray:
+        """
+        Q (6, 6): the random walk of the velocities from one pair to the next.
+
+        Per frame (``filter.velocity_process_noise``, ``filter.angular_process_noise_deg``);
+        with ``vehicle.acceleration_std`` set and the time step ``dt`` (s) given, the linear
+        velocities' std is that acceleration times ``dt`` instead.
+        """
         f = self.config.filter
-        key = (f.velocity_process_noise, f.angular_process_noise_deg)
+        accel = self.config.vehicle.acceleration_std
+        v_std = accel * dt if accel > 0 and dt is not None and dt > 0 else \
+            f.velocity_process_noise
+        key = (v_std, f.angular_process_noise_deg)
         if self._process_noise[0] != key:  # the parameters can change at run time
-            self._process_noise = (key, np.diag([f.velocity_process_noise ** 2] * 3 +
+            self._process_noise = (key, np.diag([v_std ** 2] * 3 +
                                                 [np.deg2rad(f.angular_process_noise_deg) ** 2] *
                                                 3))
         return self._process_noise[1].copy()
@@ -195,19 +205,36 @@ class MotionEstimator:
         std = np.sqrt(max(float(np.max(np.diag(self.cov)[:3])), 0.0))
         return bool(std > self.config.pipeline.prior_max_velocity_std)
 
-    def predict(self) -> tuple[np.ndarray, np.ndarray]:
-        """Return the constant-velocity prediction (mean (6,), cov (6, 6)); no state change."""
-        cov = self.cov + self.process_noise()
+    def predict(self, dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """
+        Return the constant-velocity prediction (mean (6,), cov (6, 6)); no state change.
+
+        ``dt``: the time to the next pair (s), for ``vehicle.acceleration_std``.
+        """
+        cov = self.cov + self.process_noise(dt)
         return self.mean.copy(), cov
 
-    def coast(self, inflation: float | None = None) -> None:
-        """Keep the predicted velocity and inflate its covariance (no usable measurements)."""
-        mean, cov = self.predict()
+    def coast(self, inflation: float | None = None, dt: float | None = None) -> None:
+        """
+        Keep the predicted velocity and inflate its covariance (no usable measurements).
+
+        The covariance is multiplied by ``inflation`` (default
+        ``pipeline.lost_covariance_inflation``); with ``vehicle.acceleration_std`` set only
+        the angular part is, and the linear velocity widens by the vehicle's acceleration over
+        ``dt``, the time since the last pair (s), as in :meth:`predict`.
+        """
+        mean, cov = self.predict(dt)
         factor = self.config.pipeline.lost_covariance_inflation if inflation is None \
             else inflation
         self.mean = mean
         if factor > 1:
-            cov = cov * factor
+            if self.config.vehicle.acceleration_std > 0:
+                # A vehicle's speed cannot change faster than it accelerates: a pair without
+                # an estimate widens the linear velocity by the process noise only.
+                s = np.sqrt(np.array([1.0] * 3 + [factor] * 3))
+                cov = cov * np.outer(s, s)
+            else:
+                cov = cov * factor
             # Cap every standard deviation at the initial one (after a loss the velocity is
             # no better known than at the start; a wider prior stops RANSAC hypotheses from
             # converging) with a congruence D C D (D diagonal, <= 1): unlike an element-wise
@@ -258,7 +285,7 @@ class MotionEstimator:
                   image_size: tuple[int, int] | None = None) -> MotionEstimate:
         """Body of :meth:`estimate` (which turns a singular solve into DEGENERATE)."""
         cfg = self.config
-        prior_mean, prior_cov = self.predict()
+        prior_mean, prior_cov = self.predict(dt)
         n_all = len(corr)
         used = np.zeros(n_all, bool)
         # A row is finite when its sum is (NaN and inf propagate): one product, not 8 columns.
@@ -473,7 +500,7 @@ class MotionEstimator:
     def _fail(self, status: TrackingStatus, dt: float, used: np.ndarray, hypotheses: int,
               iters: int, why: str) -> MotionEstimate:
         LOG.debug('motion estimate failed: %s (%s)', status.value, why)
-        self.coast()
+        self.coast(dt=dt)
         T = transform_from_velocity(self.mean, dt) if dt > 0 else np.eye(4)
         return MotionEstimate(velocity=self.mean.copy(), covariance=self.cov.copy(),
                               T_prev_cur=T, inliers=used, iterations=iters, status=status,
