@@ -21,6 +21,9 @@ Usage::
     python benchmarks/bench_seeds.py [--preset highway] [--seeds 0-23] [--jobs 2]
         [--config FILE] [--set ransac.ground_weight=8 ...] [--frames N] [--cache DIR]
 
+``--spec FIELD=VALUE ...`` changes fields of the scenes (``SequenceSpec``), for example a
+rig error of another size (``rig_yaw_deg=-0.232 rig_disparity_offset_px=2.25``).
+
 ``--cache DIR`` keeps each render as ``DIR/<preset>_<seed>_<frames>.npz`` (about 280 MB for a
 300-frame scene) so that another configuration can be scored on the same scenes without
 rendering again. Each worker uses one thread for OpenCV and BLAS.
@@ -29,6 +32,7 @@ rendering again. Each worker uses one thread for OpenCV and BLAS.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 from multiprocessing import get_context
 import os
@@ -44,6 +48,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stereo_vo_ros import config as config_mod  # noqa: E402
+from stereo_vo_ros.errors import ConfigError  # noqa: E402
 from stereo_vo_ros.evaluation import metrics  # noqa: E402
 from stereo_vo_ros.offline import run_frames  # noqa: E402
 from stereo_vo_ros.records import StereoFrame  # noqa: E402
@@ -64,11 +69,41 @@ def parse_seeds(text: list[str]) -> list[int]:
     return seeds
 
 
-def scene(preset: str, seed: int, frames: int | None, cache: Path | None) -> dict:
-    """Render the scene of one seed, or load it from the cache: images, stamps, true poses."""
-    extra = {} if frames is None else {'n_frames': frames}
+def spec_overrides(items: list[str]) -> dict:
+    """``FIELD=VALUE`` items (values as JSON, else strings) as a dict of scene fields."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition('=')
+        if not sep or not key:
+            raise SystemExit(f'--spec items are FIELD=VALUE, got {item!r}')
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    try:
+        SequenceSpec.preset('urban', **out)
+    except ConfigError as exc:
+        raise SystemExit(f'bad --spec {items}: {exc}') from None
+    return out
+
+
+def scene(preset: str, seed: int, frames: int | None, cache: Path | None,
+          spec_items: dict | None = None) -> dict:
+    """
+    Render the scene of one seed, or load it from the cache: images, stamps, true poses.
+
+    ``spec_items``: fields of the preset's ``SequenceSpec`` to change (``--spec``); the cached
+    render's name then ends with a digest of them.
+    """
+    extra = dict(spec_items or {})
+    if frames is not None:
+        extra['n_frames'] = frames
     spec = SequenceSpec.preset(preset, seed=seed, **extra)
-    path = None if cache is None else cache / f'{preset}_{seed}_{spec.n_frames}.npz'
+    tag = ''
+    if spec_items:
+        text = json.dumps(spec_items, sort_keys=True).encode()
+        tag = '_' + hashlib.sha1(text).hexdigest()[:10]
+    path = None if cache is None else cache / f'{preset}_{seed}_{spec.n_frames}{tag}.npz'
     if path is not None and path.exists():
         with np.load(path) as data:
             return {'spec': spec, **{k: data[k] for k in data.files}}
@@ -85,10 +120,10 @@ def scene(preset: str, seed: int, frames: int | None, cache: Path | None) -> dic
 
 def score(job: tuple) -> dict:
     """Render or load one seed, run the pipeline and return its figures."""
-    preset, seed, frames, cache, cfg = job
+    preset, seed, frames, cache, cfg, spec_items = job
     import cv2
     cv2.setNumThreads(1)
-    data = scene(preset, seed, frames, cache)
+    data = scene(preset, seed, frames, cache, spec_items)
     calib = data['spec'].calibration()
     t0 = time.perf_counter()
     out = run_frames((StereoFrame(left, right, stamp, calib) for left, right, stamp in
@@ -123,15 +158,20 @@ def main() -> int:
     ap.add_argument('--jobs', type=int, default=2, help='worker processes')
     ap.add_argument('--cache', type=Path, default=None, help='keep renders here (npz)')
     ap.add_argument('--json', type=Path, default=None, help='also write the figures here')
+    ap.add_argument('--spec', nargs='*', default=[], metavar='FIELD=VALUE',
+                    help='scene fields to change (SequenceSpec, values as JSON), e.g. '
+                    'rig_yaw_deg=-0.2 rig_disparity_offset_px=2')
     args = ap.parse_args()
     cfg = config_mod.load(args.config)
     overrides = config_mod.overrides_from_items(args.set)
     if overrides:
         cfg = cfg.replace(**overrides)
+    spec_items = spec_overrides(args.spec)
     seeds = parse_seeds(args.seeds)
     print(f'{args.preset}, seeds {args.seeds}, config {args.config or "default"}'
-          f'{", overrides " + json.dumps(overrides) if overrides else ""}', flush=True)
-    jobs = [(args.preset, s, args.frames, args.cache, cfg) for s in seeds]
+          f'{", overrides " + json.dumps(overrides) if overrides else ""}'
+          f'{", scene " + json.dumps(spec_items) if spec_items else ""}', flush=True)
+    jobs = [(args.preset, s, args.frames, args.cache, cfg, spec_items) for s in seeds]
     print(f'{"seed":>5s} {"t_rel %":>8s} {"r_rel":>7s} {"t_rel_s %":>9s} {"r_rel_s":>7s} '
           f'{"step ratio":>10s} {"bad":>4s} {"s":>5s}')
     rows = []
@@ -159,7 +199,7 @@ def main() -> int:
           f'locked (t_rel > {LOCK_PCT:g} % or failed): {len(locked)} {locked if locked else ""}')
     if args.json:
         args.json.write_text(json.dumps({'preset': args.preset, 'overrides': overrides,
-                                         'rows': rows}, indent=1))
+                                         'scene': spec_items, 'rows': rows}, indent=1))
     return 0
 
 

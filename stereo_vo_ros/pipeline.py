@@ -487,7 +487,10 @@ class StereoOdometry:
         # The pyramids' time counts wherever they were built, and so does the previous plane's.
         timings['road'] = (time.perf_counter() - t0) * 1e3 + prepare_ms + self._road_plane_ms
         self._road_plane_ms = 0.0
-        self._road_pending = (start, images, calib)
+        # The rig correction this pair's features were estimated with, for its plane.
+        right_map = self.rig.homography(calib) if self.config.rig.enabled and \
+            self.rig.active() else None
+        self._road_pending = (start, images, calib, right_map)
         return fused
 
     def _settle_road(self, pending: tuple | None) -> None:
@@ -510,20 +513,23 @@ class StereoOdometry:
             self._road_plane_job = self.workers.submit_local(self._refine_road_plane, *work)
 
     def _refine_road_plane(self, start: RoadPlane | None, images: RoadImages,
-                           calib: StereoCalibration, points: tuple[np.ndarray, np.ndarray]):
+                           calib: StereoCalibration, right_map: np.ndarray | None,
+                           points: tuple[np.ndarray, np.ndarray]):
         """
         Refine the road plane of a pair; return it (or None) and the time it took (ms).
 
-        From ``start``, the previous plane moved by the motion (``RoadAligner.refine_plane``);
-        without one, or when it is lost, from the plane of the features' ideal (left, right)
-        pixels ``points``.
+        From ``start``, the previous plane moved by the motion (``RoadAligner.refine_plane``,
+        through the rig correction ``right_map`` that the pair's features had); without one,
+        or when it is lost, from the plane of the features' ideal (left, right) pixels
+        ``points``.
         """
         t0 = time.perf_counter()
-        plane = self.road.refine_plane(images, calib, start) if start is not None else None
+        plane = self.road.refine_plane(images, calib, start, right_map) \
+            if start is not None else None
         if plane is None:  # no previous plane, or it was lost: the features' plane
             found = self._features_plane(calib, points)
             if found is not None:
-                plane = self.road.refine_plane(images, calib, RoadPlane(*found))
+                plane = self.road.refine_plane(images, calib, RoadPlane(*found), right_map)
         return plane, (time.perf_counter() - t0) * 1e3
 
     def _take_road_plane(self) -> None:

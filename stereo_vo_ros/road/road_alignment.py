@@ -12,7 +12,8 @@ predicts where each one goes:
    Cauchy-weighted, coarse to fine. It starts from the previous pair's plane moved by the
    motion (or from the plane of the features, ``ground_plane.fit_ground_plane``) and keeps the
    pixels whose left and right images agree with the plane: a vehicle standing on the road
-   does not.
+   does not. The right image is sampled through the rig error that the online rig refinement
+   estimates, as the features' right points are corrected by it.
 2. :meth:`RoadAligner.align` aligns those pixels of the previous left image with the current
    left image (plane-induced warp), starting from the estimator's motion: Gauss-Newton with the
    ESM gradient (Benhimane and Malis 2004), the exposure's gain and offset, Cauchy weights and
@@ -402,6 +403,14 @@ def _exp_se3(delta: np.ndarray) -> np.ndarray:
     return T
 
 
+def _at_level(H: np.ndarray | None, scale: float) -> np.ndarray | None:
+    """Return a homography of input pixels (3, 3) acting on the pixels of a level (or None)."""
+    if H is None:
+        return None
+    S = np.diag([scale, scale, 1.0])
+    return S @ np.asarray(H, np.float64) @ np.diag([1.0 / scale, 1.0 / scale, 1.0])
+
+
 class RoadAligner:
     """
     Dense road alignment of stereo pairs and of consecutive left images.
@@ -513,13 +522,18 @@ class RoadAligner:
         depth = depth[on]
         return us[on], vs[on], np.stack([xr[on] * depth, yr[on] * depth, depth])
 
-    def refine_plane(self, images: RoadImages, calib: StereoCalibration, plane: RoadPlane
-                     ) -> RoadPlane | None:
+    def refine_plane(self, images: RoadImages, calib: StereoCalibration, plane: RoadPlane,
+                     right_map: np.ndarray | None = None) -> RoadPlane | None:
         """
         Refine the road plane of a rectified pair by aligning its left and right images.
 
         The disparity of the left pixel on ray ``r`` (z = 1) is ``f b p . r`` with
-        ``p = n / d``: Gauss-Newton on p, coarse level first.
+        ``p = n / d``: Gauss-Newton on p, coarse level first. The plane's distance sets the
+        scale of the road motion (``align``), so the right image is sampled where the real
+        right camera sees the match: ``right_map`` is the stereo rig's error as the online
+        rig refinement estimates it (``RigCalibrator.homography``). Without it, a rig whose
+        disparities are off by a pixel at the image borders, where the near road is, puts the
+        plane a few percent too far away and the road motion that much too fast.
 
         Parameters
         ----------
@@ -529,6 +543,9 @@ class RoadAligner:
             Rectified calibration (``K_left``, ``baseline_m``).
         plane : RoadPlane
             Starting plane (left camera frame), within a few pixels of disparity.
+        right_map : np.ndarray or None
+            (3, 3) homography from the calibrated right camera's pixels to the measured ones
+            (input pixels); None: the calibration is exact.
 
         Returns
         -------
@@ -543,6 +560,7 @@ class RoadAligner:
         grids = []
         for level in reversed(images.levels):
             fb = level.intrinsics(calib)[0] * calib.baseline_m
+            H = _at_level(right_map, level.scale)
             norm = float(np.linalg.norm(p))
             us, vs, X = self._road_pixels(level, calib, RoadPlane(p / norm, 1.0 / norm))
             if len(us) < self.cfg.min_pixels * level.scale ** 2:
@@ -550,9 +568,9 @@ class RoadAligner:
             ray = np.ascontiguousarray(X / X[2])  # (3, N), z = 1
             tmpl = sample_bilinear(level.left_grad, us, vs - level.row0)  # value, d/du, d/dv
             ref = tmpl[:, 0]
-            grids.insert(0, (level, fb, us, vs, ray, tmpl))
+            grids.insert(0, (level, fb, H, us, vs, ray, tmpl))
             for _ in range(self.cfg.stereo_iterations):
-                r, ok, sampled = self._stereo_residuals(level, fb, us, vs, ray, ref, p, gain,
+                r, ok, sampled = self._stereo_residuals(level, fb, H, us, vs, ray, ref, p, gain,
                                                         offset)
                 if len(r) < self.cfg.min_pixels * level.scale ** 2:
                     return None
@@ -575,8 +593,8 @@ class RoadAligner:
         # Per level, the pixels whose left and right images agree with the plane (residual
         # within STEREO_INLIER_SCALES robust scales): a vehicle standing on the road does not.
         pixels = []
-        for level, fb, us, vs, ray, tmpl in grids:
-            r, ok, _ = self._stereo_residuals(level, fb, us, vs, ray, tmpl[:, 0], p, gain,
+        for level, fb, H, us, vs, ray, tmpl in grids:
+            r, ok, _ = self._stereo_residuals(level, fb, H, us, vs, ray, tmpl[:, 0], p, gain,
                                               offset)
             keep = np.abs(r) < STEREO_INLIER_SCALES * _scale(r)
             if ok is not None:
@@ -586,24 +604,36 @@ class RoadAligner:
         return RoadPlane(out.normal, out.d, tuple(pixels))
 
     @staticmethod
-    def _stereo_residuals(level: RoadLevel, fb: float, us: np.ndarray, vs: np.ndarray,
-                          ray: np.ndarray, ref: np.ndarray, p: np.ndarray, gain: float,
-                          offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _stereo_residuals(level: RoadLevel, fb: float, H: np.ndarray | None, us: np.ndarray,
+                          vs: np.ndarray, ray: np.ndarray, ref: np.ndarray, p: np.ndarray,
+                          gain: float, offset: float
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
         Stereo residuals ``g I_R + o - I_L`` (grey levels) of left pixels (us, vs) on plane p.
 
         The disparity of the pixel on ray r (z = 1) is ``fb p . r``; the right camera's gain g
-        and offset o may differ from the left one's. ``ray`` is (3, N). Returns the residuals
-        of the pixels whose match lies inside the right image, that mask (N,) (None when all
-        do) and the right image's samples (value, d/du) there.
+        and offset o may differ from the left one's. ``H`` (3, 3; pixels of the level) moves
+        the calibrated right pixel to where the right image shows it (None: identity). ``ray``
+        is (3, N). Returns the residuals of the pixels whose match lies inside the right image,
+        that mask (N,) (None when all do) and the right image's samples (value, d/du) there.
+        The Gauss-Newton step takes d/du as the residual's derivative by the calibrated
+        column: H differs from the identity by a small rotation and offsets, which change that
+        derivative by parts in a thousand.
         """
         ur = us - fb * (p @ ray)
-        ok = (ur > 0) & (ur < level.left.shape[1] - 1)
+        vr = vs
+        if H is not None:
+            w = H[2, 0] * ur + H[2, 1] * vs + H[2, 2]
+            ur, vr = ((H[0, 0] * ur + H[0, 1] * vs + H[0, 2]) / w,
+                      (H[1, 0] * ur + H[1, 1] * vs + H[1, 2]) / w)
+            ok = level.inside(ur, vr)
+        else:
+            ok = (ur > 0) & (ur < level.left.shape[1] - 1)
         if ok.all():
             ok = None
         else:
-            ur, vs, ref = ur[ok], vs[ok], ref[ok]
-        sampled = sample_bilinear(level.right_grad, ur, vs - level.row0)
+            ur, vr, ref = ur[ok], vr[ok], ref[ok]
+        sampled = sample_bilinear(level.right_grad, ur, vr - level.row0)
         return gain * sampled[:, 0] + offset - ref, ok, sampled
 
     def align(self, prev: RoadImages, cur: RoadImages, calib: StereoCalibration,
