@@ -528,8 +528,8 @@ class RoadAligner:
         Refine the road plane of a rectified pair by aligning its left and right images.
 
         The disparity of the left pixel on ray ``r`` (z = 1) is ``f b p . r`` with
-        ``p = n / d``: Gauss-Newton on p, coarse level first. The plane's distance sets the
-        scale of the road motion (``align``), so the right image is sampled where the real
+        ``p = n / d``: Gauss-Newton on p, coarse level first. The plane's distance and tilt set
+        the scale of the road motion (``align``), so the right image is sampled where the real
         right camera sees the match: ``right_map`` is the stereo rig's error as the online
         rig refinement estimates it (``RigCalibrator.homography``). Without it, a rig whose
         disparities are off by a pixel at the image borders, where the near road is, puts the
