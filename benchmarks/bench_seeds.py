@@ -71,16 +71,8 @@ def parse_seeds(text: list[str]) -> list[int]:
 
 def spec_overrides(items: list[str]) -> dict:
     """``FIELD=VALUE`` items (values as JSON, else strings) as a dict of scene fields."""
-    out = {}
-    for item in items:
-        key, sep, value = item.partition('=')
-        if not sep or not key:
-            raise SystemExit(f'--spec items are FIELD=VALUE, got {item!r}')
-        try:
-            out[key] = json.loads(value)
-        except json.JSONDecodeError:
-            out[key] = value
     try:
+        out = config_mod.overrides_from_items(items)  # the same item syntax as --set
         SequenceSpec.preset('urban', **out)
     except ConfigError as exc:
         raise SystemExit(f'bad --spec {items}: {exc}') from None

@@ -488,8 +488,7 @@ class StereoOdometry:
         timings['road'] = (time.perf_counter() - t0) * 1e3 + prepare_ms + self._road_plane_ms
         self._road_plane_ms = 0.0
         # The rig correction this pair's features were estimated with, for its plane.
-        right_map = self.rig.homography(calib) if self.config.rig.enabled and \
-            self.rig.active() else None
+        right_map = self.rig.homography(calib) if self.rig.active() else None
         self._road_pending = (start, images, calib, right_map)
         return fused
 
