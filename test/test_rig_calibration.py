@@ -137,6 +137,44 @@ def test_converges_to_a_known_rig_error():
     assert np.abs(left).max() < 0.05
 
 
+def test_prior_keeps_the_centre_disparity_apart_from_the_border_term():
+    calib = kitti_calibration()
+    cfg = Config().rig
+    rig = RigCalibrator(cfg)
+    run_filter(rig, calib, np.zeros(5), 1, np.random.default_rng(0))  # it sees the calibration
+    rig.reset()
+    P = rig.prior_covariance()
+    # The disparity at the principal point and the yaw's border term f yaw ((u - cx) / f)^2.
+    centre = offsets_at_centre(calib.K_right)[1]
+    border = np.zeros(5)
+    border[2] = FX
+    assert np.sqrt(centre @ P @ centre) == pytest.approx(cfg.prior_disparity_offset_std_px)
+    assert np.sqrt(border @ P @ border) == pytest.approx(FX * np.deg2rad(cfg.prior_yaw_std_deg))
+    assert centre @ P @ border == pytest.approx(0.0, abs=1e-9)
+    np.testing.assert_array_equal(rig.cov, P)  # no data yet: the covariance is the prior
+
+
+def test_a_border_term_alone_leaves_the_centre_disparity():
+    # A rectified rig whose disparities are right at the principal point and off towards the
+    # left and right borders (yaw -0.2 deg with the offset that cancels it at the centre, as
+    # both KITTI calibrations leave): the first pairs must not pull the centre disparity, which
+    # a prior with yaw and offset independent did (0.13 px median, 0.18 px at most, here).
+    calib = kitti_calibration()
+    yaw = np.deg2rad(-0.2)
+    theta = np.array([0.0, 0.0, yaw, 0.0, -FX * yaw])
+    centre = offsets_at_centre(calib.K_right)[1]
+    assert centre @ theta == pytest.approx(0.0, abs=1e-3)
+    edges = np.array([[0.0, CY], [W - 1.0, CY]])
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        rig = RigCalibrator(EVERY_PAIR.rig)
+        run_filter(rig, calib, theta, 5, rng, n_points=60)
+        assert abs(centre @ rig.theta) < 0.1, seed
+        off = apply_homography(right_homography(calib.K_right, rig.theta), edges) - \
+            apply_homography(right_homography(calib.K_right, theta), edges)
+        assert np.abs(off[:, 0]).max() < 0.15, (seed, off)
+
+
 def test_correction_undoes_the_rig_error():
     rng = np.random.default_rng(1)
     calib = kitti_calibration()

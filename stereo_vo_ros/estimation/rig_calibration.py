@@ -119,14 +119,46 @@ class RigCalibrator:
 
     def __init__(self, cfg: RigConfig) -> None:
         self.cfg = cfg
+        #: Focal length (pixels) of the right camera the prior is built for (None: none seen yet;
+        #: kept by ``reset``, taken again when another calibration is seen).
+        self._focal_px: float | None = None
         self.reset()
 
     def prior_covariance(self) -> np.ndarray:
-        """Covariance (5, 5) of the rig error before any data (diagonal, from the config)."""
+        """
+        Covariance (5, 5) of the rig error before any data (from the config).
+
+        Roll, pitch and the focal ratio are independent. Yaw and the disparity offset are
+        not: a yaw shifts every disparity by f yaw and those near the left and right borders by
+        a further f yaw ((u - cx) / f)^2 (f the focal length, pixels), and the prior takes that
+        border term and the disparity at the principal point (f yaw plus the offset) as
+        independent, with the stds ``rig.prior_yaw_std_deg`` (times f) and
+        ``rig.prior_disparity_offset_std_px``. A rectified rig's border term comes from what
+        its rectification left (both KITTI calibrations leave about 0.2 deg of it), its
+        disparity at the centre from its principal points and baseline: with yaw and offset
+        independent instead, a border term of that size came with a prior disparity error of
+        the same size at the centre, and the estimate crept towards the border term over
+        hundreds of pairs. Until a calibration was seen (its focal length) yaw and offset are
+        independent.
+        """
         c = self.cfg
         a = np.deg2rad(c.prior_angle_std_deg) ** 2
-        return np.diag([a, a, np.deg2rad(c.prior_yaw_std_deg) ** 2, c.prior_focal_ratio_std ** 2,
-                        c.prior_disparity_offset_std_px ** 2])
+        yaw = np.deg2rad(c.prior_yaw_std_deg)
+        P = np.diag([a, a, yaw ** 2, c.prior_focal_ratio_std ** 2,
+                     c.prior_disparity_offset_std_px ** 2])
+        if self._focal_px is not None:
+            border = self._focal_px * yaw  # pixels
+            P[4, 4] += border ** 2  # offset = centre disparity - f yaw
+            P[2, 4] = P[4, 2] = -border * yaw
+        return P
+
+    def _see_calibration(self, calib: StereoCalibration) -> None:
+        """Take the focal length of the prior from ``calib`` (its covariance, before any data)."""
+        f = float(calib.K_right[0, 0])
+        if f != self._focal_px:
+            self._focal_px = f
+            if self.updates == 0 and self.rejected == 0:
+                self.cov = self.prior_covariance()
 
     def reset(self) -> None:
         """Forget the estimate: zero error with the prior covariance."""
@@ -339,6 +371,7 @@ class RigCalibrator:
         if not cfg.enabled:
             self.last = 'off'
             return self.last
+        self._see_calibration(calib_cur)
         self.predict(dt)
         self._pairs += 1
         if self._pairs % cfg.measure_every:
