@@ -69,11 +69,11 @@ def parse_seeds(text: list[str]) -> list[int]:
     return seeds
 
 
-def spec_overrides(items: list[str]) -> dict:
-    """``FIELD=VALUE`` items (values as JSON, else strings) as a dict of scene fields."""
+def spec_overrides(items: list[str], preset: str) -> dict:
+    """``FIELD=VALUE`` items (values as JSON, else strings) as a dict of ``preset``'s fields."""
     try:
         out = config_mod.overrides_from_items(items)  # the same item syntax as --set
-        SequenceSpec.preset('urban', **out)
+        SequenceSpec.preset(preset, **out)
     except ConfigError as exc:
         raise SystemExit(f'bad --spec {items}: {exc}') from None
     return out
@@ -158,7 +158,7 @@ def main() -> int:
     overrides = config_mod.overrides_from_items(args.set)
     if overrides:
         cfg = cfg.replace(**overrides)
-    spec_items = spec_overrides(args.spec)
+    spec_items = spec_overrides(args.spec, args.preset)
     seeds = parse_seeds(args.seeds)
     print(f'{args.preset}, seeds {args.seeds}, config {args.config or "default"}'
           f'{", overrides " + json.dumps(overrides) if overrides else ""}'
