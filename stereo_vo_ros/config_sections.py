@@ -436,6 +436,14 @@ class RigConfig:
         'information on the rig is taken (it starts from the motion estimate and the previous '
         "pair's triangulation; a second step changed nothing on synthetic pairs; 0 linearises "
         'at the start).', 0, 20, dynamic=True)
+    update_iterations: int = _f(
+        1, "Times a pair's measurement is taken: the first at the correction in use, each next "
+        'one at the correction the estimate then applies, fused again from the same prior (an '
+        'iterated update: the robust weights are taken at the estimate, not before it). 2 '
+        'reaches a rig error of pixels in fewer pairs (KITTI 01 1.15 -> 1.08 %; rendered '
+        'highways with its rig error, median t_rel 1.68 -> 1.35 %), but also a bias of the '
+        'stereo matches sooner (nearly exact rendered highway rigs 0.48 -> 0.60 %), for about '
+        '0.7 ms per pair after the pose.', 1, 5, dynamic=True)
     huber_sigmas: float = _f(
         2.0, 'Huber constant of the bundle adjustment in residual sigmas.', 0.5, 100.0,
         dynamic=True)

@@ -179,6 +179,8 @@ class RigCalibrator:
         self.settled = False
         self.last = 'none'
         self._H_cache: tuple | None = None
+        #: The correction a measurement is linearised at instead of ``applied`` (None: that).
+        self._linearised_at: np.ndarray | None = None
 
     # -- correction ----------------------------------------------------------------------------
     def homography(self, calib: StereoCalibration) -> np.ndarray:
@@ -215,6 +217,8 @@ class RigCalibrator:
         ``theta``, ``cov``, the grid of ``rig.apply_min_px`` or the thresholds changed since
         the last call (on an unchanged state it would repeat the last result).
         """
+        if self._linearised_at is not None:
+            return self._linearised_at.copy()
         key = (np.asarray(self.theta).tobytes(), np.asarray(self.cov).tobytes(),
                self._grid_jacobian is None, self.cfg.apply_probability, self.cfg.apply_min_px)
         if self._applied_cache is None or self._applied_cache[0] != key:
@@ -336,6 +340,12 @@ class RigCalibrator:
         """
         Measure the rig error on one pair's inliers and fuse it.
 
+        The pair is measured at the correction in use; with ``rig.update_iterations`` above 1
+        it is measured again at the correction the estimate then applies and fused again from
+        the same prior (an iterated update: the measurement's robust weights depend on where
+        it is linearised, and taken at the correction in use they pass over the matches a large
+        error moves most).
+
         Parameters
         ----------
         corr : Correspondences
@@ -385,6 +395,57 @@ class RigCalibrator:
         raw = corr.subset(inliers)
         if coupling is not None:
             coupling = (coupling[0][inliers], coupling[1][inliers])
+        if stereo_rows is not None:
+            stereo_rows = np.asarray(stereo_rows, np.float64)[inliers]
+        args = (raw, calib_prev, calib_cur, T_prev_cur, images, win_size_px, coupling,
+                stereo_rows)
+        meas = self._measure(*args)
+        if meas is None:
+            self.last = 'frozen'
+            return self.last
+        prior, at = (self.theta.copy(), self.cov.copy()), self.applied()
+        self.last = 'updated' if self._fuse(meas) else 'rejected'
+        for _ in range(cfg.update_iterations - 1 if self.last == 'updated' else 0):
+            # Iterated: measured again at the correction the estimate applies (``applied``),
+            # fused again from the same prior; not while that correction stays where it was.
+            posterior, last_at, at = (self.theta, self.cov), at, self.applied()
+            if np.array_equal(at, last_at):
+                break
+            (self.theta, self.cov), self._linearised_at = prior, at
+            try:
+                again = self._measure(*args)
+            finally:
+                self._linearised_at = None
+            if again is None:
+                self.theta, self.cov = posterior
+                break
+            self._fuse(again, gate=False)
+        if self.last == 'updated':
+            self.updates += 1
+            self._streak = 0
+        else:
+            self.rejected += 1
+            self._streak += 1
+            if self._streak >= MAX_REJECTIONS:
+                LOG.warning('stereo rig: %d pairs in a row disagree with the estimate; its '
+                            'uncertainty is widened', self._streak)
+                self.cov = self.cov + 0.1 * self.prior_covariance()
+                self._streak = 0
+        self._check_settled(calib_cur)
+        return self.last
+
+    def _measure(self, raw: Correspondences, calib_prev: StereoCalibration,
+                 calib_cur: StereoCalibration, T_prev_cur: np.ndarray,
+                 images: tuple[np.ndarray, np.ndarray] | None, win_size_px: int,
+                 coupling: tuple[np.ndarray, np.ndarray] | None,
+                 stereo_rows: np.ndarray | None) -> PairMeasurement | None:
+        """
+        Measure the rig error on a pair's inliers ``raw``, linearised at the correction in use.
+
+        ``update``'s arguments, cut to the inliers. Returns the measurement with its gradient
+        referred to the estimate ``theta``, or None when it is unusable.
+        """
+        cfg = self.cfg
         sub = self.corrected(raw, calib_prev, calib_cur, coupling)
         used = np.ones((len(raw), 8), bool)
         used[:, 3] = ~pinned_rows(calib_prev, raw.prev_left, raw.prev_right)
@@ -394,7 +455,7 @@ class RigCalibrator:
         if pinned.size and (stereo_rows is not None or images is not None):
             start = self._unpinned(raw.cur_left[pinned], raw.cur_right[pinned], calib_cur)
             if stereo_rows is not None:
-                rows = np.asarray(stereo_rows, np.float64)[inliers][pinned]
+                rows = stereo_rows[pinned]
                 with np.errstate(invalid='ignore'):
                     rows[~(np.abs(rows - start[:, 1]) < ROW_GATE_PX)] = np.nan
             else:
@@ -416,28 +477,16 @@ class RigCalibrator:
             meas = None
         if meas is None or not (np.all(np.isfinite(meas.information)) and
                                 np.all(np.isfinite(meas.gradient))):
-            self.last = 'frozen'
-            return self.last
+            return None
         # The pair measured the error left after the correction in use; refer it to the estimate.
         meas.gradient = meas.gradient - meas.information @ (self.theta - self.applied())
-        self.last = 'updated' if self._fuse(meas) else 'rejected'
-        if self.last == 'updated':
-            self.updates += 1
-            self._streak = 0
-        else:
-            self.rejected += 1
-            self._streak += 1
-            if self._streak >= MAX_REJECTIONS:
-                LOG.warning('stereo rig: %d pairs in a row disagree with the estimate; its '
-                            'uncertainty is widened', self._streak)
-                self.cov = self.cov + 0.1 * self.prior_covariance()
-                self._streak = 0
-        self._check_settled(calib_cur)
-        return self.last
+        return meas
 
-    def _fuse(self, meas: PairMeasurement) -> bool:
+    def _fuse(self, meas: PairMeasurement, gate: bool = True) -> bool:
         """Information-form Kalman update with a 99.9 % gate; returns whether it was fused."""
         I, g, P = meas.information, meas.gradient, self.cov
+        if not gate:
+            return self._fused(I, g, P)
         # Gate: the measurement z = I^-1 g has covariance I^-1 + P; in information form the
         # squared distance is g^T (I + I P I)^+ g (works where I is singular).
         M = I + I @ P @ I
@@ -450,7 +499,11 @@ class RigCalibrator:
         m2 = float(np.sum(proj * proj / w[good]))
         if not (np.isfinite(m2) and m2 < CHI2_999[dof - 1]):
             return False
-        info_post = np.linalg.inv(P) + I
+        return self._fused(I, g, P)
+
+    def _fused(self, info: np.ndarray, g: np.ndarray, P: np.ndarray) -> bool:
+        """Fuse information ``info`` and gradient ``g`` into the estimate of covariance ``P``."""
+        info_post = np.linalg.inv(P) + info
         cov = np.linalg.inv(0.5 * (info_post + info_post.T))
         self.theta = self.theta + cov @ g
         self.cov = 0.5 * (cov + cov.T)
