@@ -419,7 +419,7 @@ class RigCalibrator:
             if again is None:
                 self.theta, self.cov = posterior
                 break
-            self._fuse(again, gate=False)
+            self._fused(again.information, again.gradient, self.cov)  # (the first was gated)
         if self.last == 'updated':
             self.updates += 1
             self._streak = 0
@@ -482,11 +482,9 @@ class RigCalibrator:
         meas.gradient = meas.gradient - meas.information @ (self.theta - self.applied())
         return meas
 
-    def _fuse(self, meas: PairMeasurement, gate: bool = True) -> bool:
+    def _fuse(self, meas: PairMeasurement) -> bool:
         """Information-form Kalman update with a 99.9 % gate; returns whether it was fused."""
         I, g, P = meas.information, meas.gradient, self.cov
-        if not gate:
-            return self._fused(I, g, P)
         # Gate: the measurement z = I^-1 g has covariance I^-1 + P; in information form the
         # squared distance is g^T (I + I P I)^+ g (works where I is singular).
         M = I + I @ P @ I
@@ -502,7 +500,7 @@ class RigCalibrator:
         return self._fused(I, g, P)
 
     def _fused(self, info: np.ndarray, g: np.ndarray, P: np.ndarray) -> bool:
-        """Fuse information ``info`` and gradient ``g`` into the estimate of covariance ``P``."""
+        """Fuse information ``info`` and gradient ``g`` (no gate) into an estimate of cov ``P``."""
         info_post = np.linalg.inv(P) + info
         cov = np.linalg.inv(0.5 * (info_post + info_post.T))
         self.theta = self.theta + cov @ g
