@@ -78,16 +78,19 @@ def reference_ms(clip: Clip) -> float:
     return float(np.median(times))
 
 
-def total_ms(clip: Clip, config: Config) -> tuple[float, float]:
+def total_ms(clip: Clip, config: Config) -> tuple[float, float, float]:
     """
     Median total ms per pair of one run over the clip (first pair left out), and CPU ms.
 
-    The CPU time is that of every thread of this process and of the pipeline's worker process
-    during the pairs after the first (the worker's start-up left out), per pair.
+    The CPU times, per pair after the first (the worker's start-up left out): every thread of
+    this process and the pipeline's worker process together, and the caller's thread alone
+    (``process()``'s thread), as a fraction of the pair's mean total time.
     """
     run = run_clip(clip, config)
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
-    return float(np.median([t['total'] for t in run['timings'][1:]])), cpu
+    totals = [t['total'] for t in run['timings'][1:]]
+    caller = float(np.mean(run['cpu_ms'][1:])) / float(np.mean(totals))
+    return float(np.median(totals)), cpu, caller
 
 
 def parse_config(items: list[str]) -> Config:
@@ -143,6 +146,7 @@ def main() -> int:
     # totals[round][config][clip], cpu[round][config][clip], reference[round]
     totals = np.full((args.rounds, len(configs), len(clips)), np.nan)
     cpu = np.full_like(totals, np.nan)
+    caller = np.full_like(totals, np.nan)
     reference = np.full(args.rounds, np.nan)
     print(f'\n{"round":>5s} {"reference ms":>12s}  ' + '  '.join(
         f'[{i}] {c.name[:14]:>14s}' for i in range(len(configs)) for c in clips))
@@ -151,7 +155,7 @@ def main() -> int:
         order = np.roll(np.arange(len(configs)), -r)
         for i in order:
             for k, clip in enumerate(clips):
-                totals[r, i, k], cpu[r, i, k] = total_ms(clip, configs[i])
+                totals[r, i, k], cpu[r, i, k], caller[r, i, k] = total_ms(clip, configs[i])
         print(f'{r + 1:5d} {reference[r]:12.2f}  ' + '  '.join(
             f'{totals[r, i, k]:19.2f}' for i in range(len(configs))
             for k in range(len(clips))))
@@ -167,6 +171,9 @@ def main() -> int:
                          f'{totals[:, i, k].max():.2f}), CPU {np.median(cpu[:, i, k]):.2f} '
                          f'{verdict(med <= TARGET_TOTAL_MS)}')
         print(f'  [{i}] {name}: ' + '; '.join(cells))
+        busy = ', '.join(f'{100 * np.median(caller[:, i, k]):.0f} %' for k in range(len(clips)))
+        print(f"  [{i}] the caller's thread was busy for {busy} of the time per pair (its CPU "
+              'time over the total; near 100 %: it bounds the pair)')
     for i in range(1, len(configs)):
         extra = totals[:, i] - totals[:, 0]
         extra_cpu = cpu[:, i] / cpu[:, 0] - 1.0
