@@ -80,11 +80,11 @@ def reference_ms(clip: Clip) -> float:
 
 def total_ms(clip: Clip, config: Config) -> tuple[float, float, float]:
     """
-    Median total ms per pair of one run over the clip (first pair left out), and CPU ms.
+    One run over the clip: median total ms per pair, CPU ms per pair, and the caller's share.
 
-    The CPU times, per pair after the first (the worker's start-up left out): every thread of
-    this process and the pipeline's worker process together, and the caller's thread alone
-    (``process()``'s thread), as a fraction of the pair's mean total time.
+    Pairs after the first count (the worker's start-up left out). The CPU time adds every thread
+    of this process and the pipeline's worker process; the share is the CPU time of the
+    caller's thread alone (``process()``'s) over the mean total time per pair.
     """
     run = run_clip(clip, config)
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
@@ -143,7 +143,7 @@ def main() -> int:
     print(f'OMP/OpenBLAS threads 1 (OpenCV threads: pipeline.threads - 1), '
           f'{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}')
 
-    # totals[round][config][clip], cpu[round][config][clip], reference[round]
+    # totals, cpu and caller[round][config][clip], reference[round]
     totals = np.full((args.rounds, len(configs), len(clips)), np.nan)
     cpu = np.full_like(totals, np.nan)
     caller = np.full_like(totals, np.nan)
