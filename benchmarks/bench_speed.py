@@ -171,9 +171,10 @@ def main() -> int:
                          f'{totals[:, i, k].max():.2f}), CPU {np.median(cpu[:, i, k]):.2f} '
                          f'{verdict(med <= TARGET_TOTAL_MS)}')
         print(f'  [{i}] {name}: ' + '; '.join(cells))
-        busy = ', '.join(f'{100 * np.median(caller[:, i, k]):.0f} %' for k in range(len(clips)))
-        print(f"  [{i}] the caller's thread was busy for {busy} of the time per pair (its CPU "
-              'time over the total; near 100 %: it bounds the pair)')
+        busy = '; '.join(f'{clip.name} {100 * np.median(caller[:, i, k]):.0f} %'
+                         for k, clip in enumerate(clips))
+        print(f"  [{i}] share of the time per pair the caller's thread was busy (its CPU time "
+              f'over the total; near 100 %: it bounds the pair): {busy}')
     for i in range(1, len(configs)):
         extra = totals[:, i] - totals[:, 0]
         extra_cpu = cpu[:, i] / cpu[:, 0] - 1.0
