@@ -445,6 +445,15 @@ class StereoTracker:
         failed['temporal'] = int(np.count_nonzero(passed & ~tracked))
         alive = np.flatnonzero(passed & tracked)
 
+        # With a helper thread the affine refinement runs next to the reverse pass, on every
+        # feature the forward pass kept (each point is refined on its own, so the ones the
+        # check keeps come out the same); not when the caller queued work of its own there
+        # (``after_checks``: the road pyramids), which the refinement would wait behind.
+        early = None
+        if self.workers.overlaps and cfg.affine_refinement and len(alive) \
+                and after_checks() is None:
+            early = self.workers.submit_local(self._refined, prev_left, left,
+                                              f.left_raw[alive], cur_l[alive])
         t = clock()
         npts['temporal_bwd'] = len(alive)
         back, ok = lk_pass(left_m, prev_left, cur_l[alive], f.left_raw[alive],
@@ -452,8 +461,16 @@ class StereoTracker:
         ok &= round_trip_error(f.left_raw[alive], back) < cfg.fb_threshold_px
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
-        alive = alive[ok]
-        cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
+        if early is None:
+            alive = alive[ok]
+            cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
+        else:
+            t = clock()
+            refined = early.result()
+            alive = alive[ok]
+            cur_l[alive] = refined[ok]
+            # The caller's wait, not the helper's time: the stages stay a partition of it.
+            ms['affine'] = ms.get('affine', 0.0) + (clock() - t) * 1e3
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
         #    disparity constraint (eq. 6) and range run before the reverse pass.
@@ -585,13 +602,18 @@ class StereoTracker:
     def _refine(self, img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
                 pts_to: np.ndarray, stats: TrackerStats, stereo: bool = False) -> np.ndarray:
         """Affine refinement of matches (raw pixels) when configured, timed as ``affine``."""
-        cfg = self.cfg
-        if not cfg.affine_refinement or not len(pts_from):
+        if not self.cfg.affine_refinement or not len(pts_from):
             return pts_to
         t = CLOCK()
-        rectified = self._calib is not None and self._calib.kind == 'rectified'
-        out, _ = refine_matches(cfg, img_from, img_to, pts_from, pts_to, stereo, rectified)
+        out = self._refined(img_from, img_to, pts_from, pts_to, stereo)
         stats.timings_ms['affine'] = stats.timings_ms.get('affine', 0.0) + (CLOCK() - t) * 1e3
+        return out
+
+    def _refined(self, img_from: np.ndarray, img_to: np.ndarray, pts_from: np.ndarray,
+                 pts_to: np.ndarray, stereo: bool = False) -> np.ndarray:
+        """``_refine`` without the setting's test and the timing (also on the helper thread)."""
+        rectified = self._calib is not None and self._calib.kind == 'rectified'
+        out, _ = refine_matches(self.cfg, img_from, img_to, pts_from, pts_to, stereo, rectified)
         return out.astype(pts_to.dtype)
 
     def _replenish_job(self, left: np.ndarray, calib: StereoCalibration, prior: Prior | None,
