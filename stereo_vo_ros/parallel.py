@@ -14,8 +14,9 @@ estimates the motion. Where it runs is ``pipeline.worker``:
 Short work that overlaps an OpenCV call of the caller goes to a helper thread instead
 (``submit_local``; with two or more threads, whatever the kind): OpenCV's KLT releases the GIL,
 so NumPy in the helper runs next to it without copying images to another process. The tracker
-runs its aperture checks there while it tracks the features, and then the brightness maps of
-its later passes.
+runs its aperture checks there while it tracks the features, then the brightness maps of its
+later passes, and the temporal affine refinement (a compiled kernel, which releases the GIL
+too) while its forward-backward check runs.
 
 With one thread (``pipeline.threads: 1``) everything runs inline in the caller's thread, in the
 same order; the results are the same either way. ``Workers`` belongs to one ``StereoOdometry``
