@@ -469,7 +469,7 @@ class StereoTracker:
             refined = early.result()
             alive = alive[ok]
             cur_l[alive] = refined[ok]
-            # The caller's wait, not the helper's time: the stages stay a partition of it.
+            # Timed as the caller's wait for it: the helper's own time ran beside the reverse pass.
             ms['affine'] = ms.get('affine', 0.0) + (clock() - t) * 1e3
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
