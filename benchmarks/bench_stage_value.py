@@ -59,6 +59,10 @@ VARIANTS = (
     ('no robust reweighting', ['filter.robust_loss=none']),
     ('affine: 2 iterations', ['tracker.affine_iterations=2']),
     ('KLT: 10 iterations', ['tracker.max_iterations=10']),
+    ('KLT from a start: base', ['tracker.predicted_pyramid_levels=0',
+                                'tracker.stereo_pyramid_levels=0']),
+    ('temporal, bc KLT: base', ['tracker.predicted_pyramid_levels=0']),
+    ('stereo KLT: base', ['tracker.stereo_pyramid_levels=0']),
 )
 PRESETS = ('urban', 'highway', 'urban_photometric', 'highway_rig')
 
@@ -114,7 +118,7 @@ def main() -> int:
     for p, preset in enumerate(args.presets):
         for v, cfg in enumerate(configs):
             t0 = time.perf_counter()
-            rows = [score((preset, s, args.frames, args.cache, cfg)) for s in seeds]
+            rows = [score((preset, s, args.frames, args.cache, cfg, None)) for s in seeds]
             t_rel[v, p] = [r['t_rel'] for r in rows]
             print(f'  {preset:18s} {VARIANTS[v][0]:24s} mean t_rel '
                   f'{np.nanmean(t_rel[v, p]):.3f} % ({time.perf_counter() - t0:.0f} s)',

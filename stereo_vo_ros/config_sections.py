@@ -45,6 +45,10 @@ class TrackerConfig:
         3, 'KLT pyramid levels above the base image when no prediction is available.', 0, 8)
     predicted_pyramid_levels: int = _f(
         1, 'KLT pyramid levels when the motion prior gives an initial flow.', 0, 8)
+    stereo_pyramid_levels: int = _f(
+        1, 'KLT pyramid levels of the stereo passes that start from a disparity: the tracked '
+        "features' (the predicted or last disparity) and the new corners' near a tracked "
+        'feature (its disparity).', 0, 8)
     use_motion_prior: bool = _f(
         True, 'Predict feature positions from the constant-velocity prior (initial flow).')
     max_iterations: int = _f(30, 'KLT iterations per pyramid level.', 1, 200)

@@ -254,6 +254,29 @@ def test_prior_switch_and_bad_predictions():
         assert_finite(res)
 
 
+def test_stereo_pyramid_levels_set_the_reach_of_the_stereo_pass():
+    """A predicted disparity 8 px off: the stereo pass needs a pyramid level to reach it."""
+    calib = rectified_calib()
+    delta = np.array([M2[0] - M1[0], M2[1] - M1[1]])
+
+    def wrong_disparity(prev_left, prev_right):  # the left motion right, the right 8 px off
+        return prev_left + delta, prev_right + delta - np.array([8.0, 0.0])
+
+    found, temporal = {}, {}
+    for levels in (0, 1):
+        tracker = StereoTracker(config(stereo_pyramid_levels=levels))
+        first = tracker.track(*pair(M1), calib)
+        res = tracker.track(*pair(M2), calib, wrong_disparity)
+        assert res.stats.used_prior
+        found[levels], temporal[levels] = res.correspondences, res.stats.failed['temporal']
+        assert_finite(res)
+    assert temporal[0] == temporal[1]  # the temporal pass follows its own setting
+    assert len(found[1]) > 0.95 * first.stats.n_features
+    for err in shift_errors(found[1], tuple(delta)):
+        assert np.median(err) < 0.02
+    assert len(found[0]) < 0.9 * len(found[1])
+
+
 def test_detection_respects_max_features_buckets_and_min_distance():
     calib = rectified_calib()
     cfg = config(max_features=120)

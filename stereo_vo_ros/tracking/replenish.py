@@ -25,7 +25,7 @@ from ..config import BucketingConfig, TrackerConfig
 from ..estimation.camera import StereoCalibration
 
 #: A new corner closer than this to a tracked feature starts its stereo search at that
-#: feature's disparity with ``predicted_pyramid_levels`` (pixels).
+#: feature's disparity with ``stereo_pyramid_levels`` (pixels).
 NEIGHBOUR_RADIUS_PX = 80.0
 
 
@@ -199,7 +199,7 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     pr = np.empty_like(pts)
     ok = np.zeros(len(pts), bool)
     points['new_stereo_fwd'] = len(pts)
-    for sel, levels in ((guided, cfg.predicted_pyramid_levels),
+    for sel, levels in ((guided, cfg.stereo_pyramid_levels),
                         (~guided, cfg.pyramid_levels)):
         if sel.any():
             pr[sel], ok[sel] = lk_pass(left, right_matched, pts[sel], guess[sel], levels, win,

@@ -498,7 +498,7 @@ class StereoTracker:
         right_m, spent = self._matched(left, right, cur_l[alive], cur_l[alive] + offset, stats)
         t += spent
         cur_r, ok = lk_pass(left, right_m, cur_l[alive], cur_l[alive] + offset,
-                            cfg.predicted_pyramid_levels, win, iters)
+                            cfg.stereo_pyramid_levels, win, iters)
         failed['stereo'] = int(np.count_nonzero(~ok))
         alive, cur_r = alive[ok], cur_r[ok]
         ideal_l = calib.undistort_left(cur_l[alive])
