@@ -15,12 +15,14 @@ this prints:
 * mean t_rel (%) over seeds of rendered presets (``bench_seeds.score``, renders cached with
   ``--cache``): the clean city and highway, the city with exposure jumps and vignetting, the
   highway with a rig error; and in how many of the scenes the variant is worse than the default;
-* end drift (%) on the KITTI clips in ``../shared/data`` (skipped, and said so, without them).
+* end drift (%) and the median features tracked per pair on the KITTI clips in
+  ``../shared/data`` (skipped, and said so, without them); ``--every N`` takes every N-th frame
+  of them (a lower frame rate: the motion prior's predictions are further off).
 
 Usage::
 
     python benchmarks/bench_stage_value.py [--data ../shared/data] [--seeds 0-7]
-        [--frames 150] [--cache DIR] [--rounds 3] [--presets urban highway ...]
+        [--frames 150] [--cache DIR] [--rounds 3] [--presets urban highway ...] [--every 1]
 
 Time figures need an otherwise idle machine; the accuracy figures do not.
 """
@@ -39,7 +41,7 @@ for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_accuracy import KITTI_CLIPS, load_real, run_clip, SHARED_DATA  # noqa: E402
+from bench_accuracy import Clip, KITTI_CLIPS, load_real, run_clip, SHARED_DATA  # noqa: E402
 from bench_seeds import parse_seeds, score  # noqa: E402
 from bench_speed import reference_ms, total_ms  # noqa: E402
 import cv2  # noqa: E402
@@ -94,12 +96,18 @@ def main() -> int:
     ap.add_argument('--presets', nargs='*', default=list(PRESETS), help='none: time only')
     ap.add_argument('--cache', type=Path, default=None, help='keep renders here (npz)')
     ap.add_argument('--rounds', type=int, default=3, help='timing rounds (0: no timing)')
+    ap.add_argument('--every', type=int, default=1,
+                    help='take every N-th frame of the real clips: a lower frame rate, whose '
+                         'larger steps put the motion prior further off')
     args = ap.parse_args()
     cv2.setNumThreads(1)
     seeds = parse_seeds(args.seeds)
     configs = [config_of(items) for _, items in VARIANTS]
     clips = [load_real(args.data / name) for name in KITTI_CLIPS
              if (args.data / name).is_dir()]
+    if args.every > 1:
+        clips = [Clip(f'{c.name} every {args.every}', c.frames[::args.every],
+                      c.gt[::args.every]) for c in clips]
     if not clips:
         print(f'KITTI clips not found in {args.data}: no time and no real-clip drift')
 
@@ -125,18 +133,21 @@ def main() -> int:
                   flush=True)
 
     drift = np.full((len(configs), len(clips)), np.nan)
+    tracked = np.full((len(configs), len(clips)), np.nan)
     for c, clip in enumerate(clips):
         for v, cfg in enumerate(configs):
-            drift[v, c] = metrics.evaluate(clip.gt, run_clip(clip, cfg)['poses'])[
-                'end_drift_pct']
+            run = run_clip(clip, cfg)
+            drift[v, c] = metrics.evaluate(clip.gt, run['poses'])['end_drift_pct']
+            tracked[v, c] = np.median(run['tracked'][1:])
 
     print(f'\nseeds {args.seeds}, {args.frames} frames per scene; mean t_rel % (scenes worse '
-          'than the default); end drift % on the clips; ms saved per pair (median over rounds, '
-          'range)')
+          'than the default); end drift % and median features tracked per pair on the clips; ms '
+          'saved per pair (median over rounds, range)')
     head = f'{"variant":24s} ' + ' '.join(f'{c.name[:7] + " ms":>22s}' for c in clips) if \
         saved is not None else f'{"variant":24s}'
     head += ' ' + ' '.join(f'{p[:18]:>18s}' for p in args.presets)
     head += ' ' + ' '.join(f'{c.name[:7] + " drift":>13s}' for c in clips)
+    head += ' ' + ' '.join(f'{c.name[:7] + " feats":>13s}' for c in clips)
     print(head)
     for v, (label, _) in enumerate(VARIANTS):
         line = f'{label:24s} '
@@ -148,6 +159,7 @@ def main() -> int:
             cell = f'{np.nanmean(t_rel[v, p]):.3f}' + (f' ({worse}/{len(seeds)})' if v else '')
             line += ' ' + cell.rjust(18)
         line += ' ' + ' '.join(f'{drift[v, c]:13.2f}' for c in range(len(clips)))
+        line += ' ' + ' '.join(f'{tracked[v, c]:13.0f}' for c in range(len(clips)))
         print(line)
     return 0
 
