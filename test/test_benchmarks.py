@@ -1,0 +1,57 @@
+"""
+The benchmark scripts that run long run end to end on a tiny input.
+
+Their figures are not checked here (they are what ``docs/benchmarks.md`` reports); what is
+checked is that a script goes through every variant and prints its table, so that one that
+stops half way (a helper it calls changed) is found before someone waits 20 minutes for it.
+"""
+
+import math
+from pathlib import Path
+import subprocess
+import sys
+
+REPO = Path(__file__).resolve().parents[1]
+STAGE_VALUE = REPO / 'benchmarks' / 'bench_stage_value.py'
+
+
+def variant_labels() -> list[str]:
+    """Return the labels of ``bench_stage_value.VARIANTS``, in order."""
+    sys.path.insert(0, str(REPO / 'benchmarks'))
+    try:
+        from bench_stage_value import VARIANTS
+    finally:
+        sys.path.remove(str(REPO / 'benchmarks'))
+    return [label for label, _ in VARIANTS]
+
+
+def stage_value_table(*args: str) -> tuple[str, list[list[str]]]:
+    """Run bench_stage_value.py; return its output and its last table's rows (label first)."""
+    out = subprocess.run([sys.executable, str(STAGE_VALUE), *args], capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = out.stdout[out.stdout.rindex('\nvariant'):].splitlines()[2:]
+    return out.stdout, [[row[:24].strip(), *row[24:].split()] for row in rows]
+
+
+def test_stage_value_scores_every_variant_on_a_rendered_scene(tmp_path):
+    """One 4-pair demo render, without the clips: a row for every variant."""
+    text, rows = stage_value_table(
+        '--data', str(tmp_path / 'no_clips'), '--presets', 'demo', '--seeds', '0',
+        '--frames', '4', '--rounds', '0', '--cache', str(tmp_path / 'cache'))
+    assert 'KITTI clips not found' in text
+    assert [row[0] for row in rows] == variant_labels()
+    for row in rows:
+        float(row[1])  # the scene's t_rel (NaN: a 4-pair drive has no 100 m segment)
+
+
+def test_stage_value_runs_the_clips_at_a_lower_frame_rate(shared_data):
+    """Every fifth frame of the KITTI clips: finite drift and features for every variant."""
+    _, rows = stage_value_table('--data', str(shared_data), '--presets', '--rounds', '0',
+                                '--every', '5')
+    assert [row[0] for row in rows] == variant_labels()
+    for row in rows:
+        drift = [float(v) for v in row[1:3]]
+        features = [float(v) for v in row[3:5]]
+        assert all(math.isfinite(v) and v >= 0.0 for v in drift), row
+        assert all(v > 10 for v in features), row
