@@ -44,7 +44,8 @@ class TrackerConfig:
     pyramid_levels: int = _f(
         3, 'KLT pyramid levels above the base image when no prediction is available.', 0, 8)
     predicted_pyramid_levels: int = _f(
-        1, 'KLT pyramid levels when the motion prior gives an initial flow.', 0, 8)
+        1, 'KLT pyramid levels of the temporal pass when the motion prior gives an initial '
+        "flow, and of the bi-circular check's pass.", 0, 8)
     stereo_pyramid_levels: int = _f(
         1, 'KLT pyramid levels of the stereo passes that start from a disparity: the tracked '
         "features' (the predicted or last disparity) and the new corners' near a tracked "
