@@ -100,6 +100,9 @@ def main() -> int:
                     help='take every N-th frame of the real clips: a lower frame rate, whose '
                          'larger steps put the motion prior further off')
     args = ap.parse_args()
+    if args.every < 1 or (args.every > 1 and args.rounds > 0):
+        ap.error('--every takes N >= 1, and above 1 needs --rounds 0 (the timing and its '
+                 'reference pass are for the clips at their own frame rate)')
     cv2.setNumThreads(1)
     seeds = parse_seeds(args.seeds)
     configs = [config_of(items) for _, items in VARIANTS]
@@ -108,6 +111,8 @@ def main() -> int:
     if args.every > 1:
         clips = [Clip(f'{c.name} every {args.every}', c.frames[::args.every],
                       c.gt[::args.every]) for c in clips]
+        sizes = ', '.join(str(len(c.frames)) for c in clips)
+        print(f'real clips: every {args.every}th frame ({sizes} pairs)')
     if not clips:
         print(f'KITTI clips not found in {args.data}: no time and no real-clip drift')
 

@@ -25,33 +25,45 @@ def variant_labels() -> list[str]:
     return [label for label, _ in VARIANTS]
 
 
-def stage_value_table(*args: str) -> tuple[str, list[list[str]]]:
-    """Run bench_stage_value.py; return its output and its last table's rows (label first)."""
+def stage_value_table(*args: str) -> tuple[str, list[str], list[list[str]]]:
+    """
+    Run bench_stage_value.py; return its output and its last table's header and rows.
+
+    Header and rows are lists of cells, the label first (labels fill the first 24 characters).
+    """
     out = subprocess.run([sys.executable, str(STAGE_VALUE), *args], capture_output=True,
                          text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
-    rows = out.stdout[out.stdout.rindex('\nvariant'):].splitlines()[2:]
-    return out.stdout, [[row[:24].strip(), *row[24:].split()] for row in rows]
+    lines = out.stdout[out.stdout.rindex('\nvariant'):].splitlines()[1:]
+    head = ['variant'] + [' '.join(p) for p in zip(*[iter(lines[0][24:].split())] * 2)]
+    return out.stdout, head, [[row[:24].strip(), *row[24:].split()] for row in lines[1:]]
 
 
 def test_stage_value_scores_every_variant_on_a_rendered_scene(tmp_path):
     """One 4-pair demo render, without the clips: a row for every variant."""
-    text, rows = stage_value_table(
+    text, _, rows = stage_value_table(
         '--data', str(tmp_path / 'no_clips'), '--presets', 'demo', '--seeds', '0',
         '--frames', '4', '--rounds', '0', '--cache', str(tmp_path / 'cache'))
     assert 'KITTI clips not found' in text
-    assert [row[0] for row in rows] == variant_labels()
+    labels = variant_labels()
+    assert max(len(label) for label in labels) <= 24  # the table's label column
+    assert [row[0] for row in rows] == labels
     for row in rows:
-        float(row[1])  # the scene's t_rel (NaN: a 4-pair drive has no 100 m segment)
+        # The scene's t_rel: NaN, a 4-pair drive has no 100 m segment; that it printed one is
+        # what is checked (the clips' test checks finite figures).
+        float(row[1])
 
 
 def test_stage_value_runs_the_clips_at_a_lower_frame_rate(shared_data):
     """Every fifth frame of the KITTI clips: finite drift and features for every variant."""
-    _, rows = stage_value_table('--data', str(shared_data), '--presets', '--rounds', '0',
-                                '--every', '5')
+    text, head, rows = stage_value_table('--data', str(shared_data), '--presets', '--rounds',
+                                         '0', '--every', '5')
+    assert 'every 5th frame' in text
+    drift = [i for i, cell in enumerate(head) if cell.endswith(' drift')]
+    features = [i for i, cell in enumerate(head) if cell.endswith(' feats')]
+    assert drift and len(drift) == len(features) and len(head) == 1 + 2 * len(drift), head
     assert [row[0] for row in rows] == variant_labels()
     for row in rows:
-        drift = [float(v) for v in row[1:3]]
-        features = [float(v) for v in row[3:5]]
-        assert all(math.isfinite(v) and v >= 0.0 for v in drift), row
-        assert all(v > 10 for v in features), row
+        assert len(row) == len(head), row
+        assert all(math.isfinite(float(row[i])) and float(row[i]) >= 0.0 for i in drift), row
+        assert all(float(row[i]) > 10 for i in features), row

@@ -27,6 +27,7 @@ from stereo_vo_ros.tracking.detection import detect_corners
 from stereo_vo_ros.tracking.klt_checks import (aperture_checks, bicircular_error, CheckSet,
                                                disparity_constraint, eigen_ratio,
                                                flow_edge_ratio, gradient_matrix)
+from stereo_vo_ros.tracking.replenish import replenish, ReplenishJob
 from stereo_vo_ros.tracking.tracker import StereoTracker
 
 W, H = 400, 300
@@ -275,6 +276,26 @@ def test_stereo_pyramid_levels_set_the_reach_of_the_stereo_pass():
     for err in shift_errors(found[1], tuple(delta)):
         assert np.median(err) < 0.02
     assert len(found[0]) < 0.9 * len(found[1])
+
+
+def test_stereo_pyramid_levels_set_the_reach_of_the_new_corners_stereo_search():
+    """New corners start at a nearby tracked feature's disparity, here 8 px off."""
+    calib = rectified_calib()
+    left, right = pair(M1)
+    rng = np.random.default_rng(0)
+    tracked = np.column_stack([rng.uniform(40, W - 40, 30),
+                               rng.uniform(40, H - 40, 30)]).astype(np.float32)
+    found = {}
+    for off, levels in ((0.0, 0), (8.0, 0), (8.0, 1)):
+        job = ReplenishJob(config(stereo_pyramid_levels=levels), BucketingConfig(), calib,
+                           tracked, tracked - np.float32([DISPARITY + off, 0.0]), 60, None,
+                           None, True)
+        new = replenish(left, right, right, job)
+        disparity = new.left_raw[:, 0] - new.right_raw[:, 0]
+        assert np.median(np.abs(disparity - DISPARITY)) < 0.02
+        found[off, levels] = len(new.left_raw)
+    assert found[8.0, 1] > 0.95 * found[0.0, 0]
+    assert found[8.0, 0] < 0.9 * found[8.0, 1]
 
 
 def test_detection_respects_max_features_buckets_and_min_distance():

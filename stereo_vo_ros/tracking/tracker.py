@@ -212,7 +212,8 @@ class StereoTracker:
         prior : callable or None
             Motion prior ``(prev_left_ideal, prev_right_ideal) -> (cur_left_pred,
             cur_right_pred)``, (N, 2) float64 ideal pixels each; used as the KLT initial flow
-            with ``predicted_pyramid_levels`` when ``use_motion_prior`` is set.
+            when ``use_motion_prior`` is set: of the temporal pass (``predicted_pyramid_levels``)
+            and, through the predicted disparity, of the stereo pass (``stereo_pyramid_levels``).
         after_checks : callable or None
             Called once, without arguments, as soon as the pair's own work for the helper
             thread (``Workers.submit_local``: brightness maps, aperture checks) is queued, so
