@@ -119,14 +119,15 @@ class ProcessWorker:
     One worker process that runs submitted functions, one at a time, in submission order.
 
     ``preload`` names what the process does as it starts, so that the first job does not wait:
-    modules to import (``package.module``) and functions to call (``package.module:function``).
-    The process sees the caller's ``sys.path``. ``submit(fn, *args)`` sends ``fn`` (a
-    module-level function, pickled by name) and its arguments; plain NumPy arrays of
-    ``SHARED_MIN_BYTES`` or more are copied into a shared-memory block instead of pickled. The
-    next ``submit`` waits for the last job. Whatever cannot go (arguments that do not pickle
-    here or unpickle there, no room for the shared block) or does not come back (a result that
-    does not pickle, the process died, hung for ``RESULT_TIMEOUT_S`` (``STARTUP_TIMEOUT_S``
-    for the first job) or the wait was interrupted) runs inline.
+    modules to import (``package.module``) and functions to call (``package.module:function``,
+    or ``package.module:function=JSON`` with one argument). The process sees the caller's
+    ``sys.path``. ``submit(fn, *args)`` sends ``fn`` (a module-level function, pickled by name)
+    and its arguments; plain NumPy arrays of ``SHARED_MIN_BYTES`` or more are copied into a
+    shared-memory block instead of pickled. The next ``submit`` waits for the last job.
+    Whatever cannot go (arguments that do not pickle here or unpickle there, no room for the
+    shared block) or does not come back (a result that does not pickle, the process died, hung
+    for ``RESULT_TIMEOUT_S`` (``STARTUP_TIMEOUT_S`` for the first job) or the wait was
+    interrupted) runs inline.
     """
 
     def __init__(self, preload: tuple[str, ...] = ()) -> None:
@@ -434,17 +435,19 @@ def serve(conn: Connection, preload: tuple[str, ...] = ()) -> None:
     """
     Run jobs from ``conn`` until it closes or sends an empty message (the worker's loop).
 
-    ``preload``: modules to import first, or ``module:function`` to call.
+    ``preload``: modules to import first, or ``module:function`` to call, or
+    ``module:function=JSON`` to call with one argument.
     """
     # Ctrl-C in a terminal reaches the whole process group: the caller decides when this
     # process ends (an empty message, or the end of the socket when the caller is gone).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
     for item in preload:
-        name, _, function = item.partition(':')
+        name, _, call = item.partition(':')
+        function, _, arg = call.partition('=')
         module = importlib.import_module(name)
         if function:
-            getattr(module, function)()
+            getattr(module, function)(*([json.loads(arg)] if arg else []))
     block: tuple[str, mmap.mmap] | None = None
     while True:
         try:

@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from .allocator import keep_freed_memory
 from .config import Config
 from .errors import ImageError
 from .estimation.camera import StereoCalibration
@@ -112,6 +113,7 @@ class StereoOdometry:
 
     def __init__(self, config: Config | None = None) -> None:
         self.config = config or Config()
+        keep_freed_memory(self.config.pipeline.keep_freed_memory_mb)
         #: Where the replenishment runs (``pipeline.threads``, ``pipeline.worker``).
         self.workers = self._workers(self.config)
         self.tracker = StereoTracker(self.config.tracker, self.config.bucketing, self.workers)
@@ -180,8 +182,11 @@ class StereoOdometry:
     @staticmethod
     def _workers(config: Config) -> Workers:
         """Return the workers of ``pipeline.threads`` and ``pipeline.worker``."""
+        keep = config.pipeline.keep_freed_memory_mb
+        allocator = (f'{keep_freed_memory.__module__}:keep_freed_memory={keep}',) if keep > 0 \
+            else ()
         return Workers(config.pipeline.threads, kind=config.pipeline.worker,
-                       preload=WORKER_MODULES)
+                       preload=WORKER_MODULES + allocator)
 
     def close(self) -> None:
         """Finish the last pair's work, stop the worker (later calls run in this thread)."""

@@ -67,3 +67,17 @@ def test_stage_value_runs_the_clips_at_a_lower_frame_rate(shared_data):
         assert len(row) == len(head), row
         assert all(math.isfinite(float(row[i])) and float(row[i]) >= 0.0 for i in drift), row
         assert all(float(row[i]) > 10 for i in features), row
+
+
+def test_allocator_benchmark_compares_both_settings_on_a_rendered_scene(tmp_path):
+    """Six rendered pairs, one round: a row for glibc's defaults and one for the setting."""
+    out = subprocess.run([sys.executable, str(REPO / 'benchmarks' / 'bench_allocator.py'),
+                          '--data', str(tmp_path / 'no_clips'), '--rounds', '1', '--frames',
+                          '6'], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert 'no KITTI clip' in out.stdout
+    rows = [line.split() for line in out.stdout.splitlines() if line.startswith('urban ')]
+    assert [row[1] for row in rows] == ['0', '32']
+    for row in rows:
+        assert all(math.isfinite(float(cell)) for cell in row[2:])
+    assert 'ratio' in out.stdout.splitlines()[-1]
