@@ -5,12 +5,13 @@ The setting is process-wide and cannot be undone, so each run is a process of it
 the KITTI clips into memory (as ``bench_accuracy.py`` does), then runs the pipeline over each
 clip with the setting at 0 (glibc's defaults) or at its default; runs with either value
 alternate, round by round. Prints, per clip and value, the median over rounds of: the median
-total ms per pair, the page faults of the caller's thread per pair, and its system (kernel) CPU
-ms per pair (the first two pairs left out); then the ratio of the medians.
+total ms per pair, the mean page faults of the caller's thread per pair, and its mean system
+(kernel) CPU ms per pair (the first two pairs left out); then the ratio of the ms medians.
 
 Whether glibc's defaults return a pair's memory to the system depends on what the process freed
 before (glibc raises its thresholds after each large block it unmaps), so other processes (the
 node, ``stereo_vo run``, ``bench_speed.py`` after its renders) may not show the faults at all.
+The runs leave out the environment's glibc malloc settings (``MALLOC_*_``, ``GLIBC_TUNABLES``).
 Without the clips a rendered urban scene (1241x376, ``--frames`` pairs) is used instead,
 written to a temporary KITTI folder and loaded the same way.
 
@@ -36,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_accuracy import KITTI_CLIPS, SHARED_DATA  # noqa: E402
 import numpy as np  # noqa: E402
+from stereo_vo_ros.allocator import MALLOC_ENVIRONMENT  # noqa: E402
 from stereo_vo_ros.config import Config  # noqa: E402
 
 #: One run: load the clips, run each, print one JSON line per clip.
@@ -67,11 +69,16 @@ for folder, frames in clips:
 
 def run(keep: int, folders: list[str], items: list[str]) -> dict[str, np.ndarray]:
     """One process: {folder: (pairs, 3) total ms, page faults, system ms} per pair."""
-    env = dict(os.environ, OPENBLAS_NUM_THREADS='1', OMP_NUM_THREADS='1',
+    # Without the operator's malloc settings, which the pipeline would leave as set.
+    env = {key: value for key, value in os.environ.items()
+           if key not in MALLOC_ENVIRONMENT and key != 'GLIBC_TUNABLES'}
+    env.update(OPENBLAS_NUM_THREADS='1', OMP_NUM_THREADS='1',
                PYTHONPATH=os.pathsep.join([str(ROOT)] + sys.path))
     out = subprocess.run([sys.executable, '-c', RUN, str(keep), ','.join(folders),
-                          json.dumps(items)], capture_output=True, text=True, env=env,
-                         check=True)
+                          json.dumps(items)], capture_output=True, text=True, env=env)
+    if out.returncode:
+        sys.stderr.write(out.stderr)
+        raise SystemExit(f'the run with keep_freed_memory_mb={keep} failed')
     result = {}
     for line in out.stdout.splitlines():
         if line.startswith('['):
@@ -90,17 +97,25 @@ def main() -> int:
                         help='overrides of the defaults for both values')
     args = parser.parse_args()
     default_keep = Config().pipeline.keep_freed_memory_mb
+    if default_keep <= 0:
+        raise SystemExit('pipeline.keep_freed_memory_mb is off by default: nothing to compare')
     folders = [str(args.data / name) for name in KITTI_CLIPS if (args.data / name).is_dir()]
-    tmp = None
-    if not folders:
-        from stereo_vo_ros.io.kitti import write_kitti
-        from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
-        print(f'no KITTI clip in {args.data}: a rendered urban scene (1241x376, '
-              f'{args.frames} pairs) instead')
-        tmp = tempfile.TemporaryDirectory()
-        seq = SyntheticSequence(SequenceSpec.preset('urban', n_frames=args.frames + 1, seed=0))
-        write_kitti(Path(tmp.name) / 'urban', seq, seq.ground_truth)
-        folders = [str(Path(tmp.name) / 'urban')]
+    with tempfile.TemporaryDirectory() as tmp:
+        if not folders:
+            from stereo_vo_ros.io.kitti import write_kitti
+            from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
+            print(f'no KITTI clip in {args.data}: a rendered urban scene (1241x376, '
+                  f'{args.frames} pairs) instead')
+            seq = SyntheticSequence(SequenceSpec.preset('urban', n_frames=args.frames + 1,
+                                                        seed=0))
+            write_kitti(Path(tmp) / 'urban', seq, seq.ground_truth)
+            folders = [str(Path(tmp) / 'urban')]
+        compare(folders, default_keep, args)
+    return 0
+
+
+def compare(folders: list[str], default_keep: int, args: argparse.Namespace) -> None:
+    """Run the rounds over ``folders`` and print the table."""
     print(f'clips: {", ".join(Path(f).name for f in folders)}; overrides: {args.set or "none"}; '
           f'{args.rounds} rounds, keep_freed_memory_mb 0 and {default_keep} alternated')
     stats = {(f, k): [] for f in folders for k in (0, default_keep)}
@@ -118,9 +133,6 @@ def main() -> int:
             medians[keep] = ms
             print(f'{Path(folder).name:24s} {keep:7d} {ms:8.2f} {faults:11.0f} {sys_ms:11.2f}')
         print(f'{"":24s} ratio {medians[default_keep] / medians[0]:.3f}')
-    if tmp is not None:
-        tmp.cleanup()
-    return 0
 
 
 if __name__ == '__main__':

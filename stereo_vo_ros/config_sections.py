@@ -327,8 +327,10 @@ class PipelineConfig:
         "process). With glibc's defaults, depending on what the process freed before, the "
         'heap can grow by about 4 MB within a 1241x376 pair and be trimmed at its end, and the '
         'next pair faults those pages in again (kitti01: up to about 800 page faults, 1.3 ms of '
-        'kernel time per pair). 0: leave the allocator alone (a value set before stays for the '
-        'life of the process).', 0, 32)
+        'kernel time per pair). Every library and node in the process allocates under it, and '
+        "each of glibc's per-thread arenas may keep this much free. Not applied where the "
+        "environment sets glibc's malloc thresholds (MALLOC_*_, GLIBC_TUNABLES). 0: leave the "
+        'allocator alone (a value set before stays for the life of the process).', 0, 32)
 
 
 @dataclass

@@ -167,15 +167,19 @@ class StereoOdometry:
     def update_config(self, config: Config) -> None:
         """Apply a new configuration (run-time changes of thresholds) without a reset."""
         self._settle_quietly('configuration change')
-        self.config = config
+        old, self.config = self.config, config
         self.tracker.cfg = config.tracker
         self.tracker.bucketing_cfg = config.bucketing
         self.estimator.config = config
         self.road.cfg, self.road.ransac = config.road, config.ransac
         self.rig.cfg = config.rig
         pipe = config.pipeline
+        keep_changed = pipe.keep_freed_memory_mb != old.pipeline.keep_freed_memory_mb
+        if keep_changed:
+            keep_freed_memory(pipe.keep_freed_memory_mb)
         if auto_threads(pipe.threads) != self.workers.threads or \
-                (self.workers.threads > 1 and pipe.worker != self.workers.requested):
+                (self.workers.threads > 1 and (pipe.worker != self.workers.requested
+                                               or keep_changed)):
             self.workers.close()
             self.workers = self.tracker.workers = self._workers(config)
 

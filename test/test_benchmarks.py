@@ -11,6 +11,8 @@ from pathlib import Path
 import subprocess
 import sys
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 STAGE_VALUE = REPO / 'benchmarks' / 'bench_stage_value.py'
 
@@ -69,6 +71,8 @@ def test_stage_value_runs_the_clips_at_a_lower_frame_rate(shared_data):
         assert all(float(row[i]) > 10 for i in features), row
 
 
+@pytest.mark.skipif(not sys.platform.startswith('linux'),
+                    reason='the benchmark counts page faults per thread (Linux)')
 def test_allocator_benchmark_compares_both_settings_on_a_rendered_scene(tmp_path):
     """Six rendered pairs, one round: a row for glibc's defaults and one for the setting."""
     out = subprocess.run([sys.executable, str(REPO / 'benchmarks' / 'bench_allocator.py'),
