@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_accuracy import KITTI_CLIPS, SHARED_DATA  # noqa: E402
 import numpy as np  # noqa: E402
-from stereo_vo_ros.allocator import MALLOC_ENVIRONMENT  # noqa: E402
+from stereo_vo_ros.allocator import malloc_settings  # noqa: E402
 from stereo_vo_ros.config import Config  # noqa: E402
 
 #: One run: load the clips, run each, print one JSON line per clip.
@@ -70,8 +70,8 @@ for folder, frames in clips:
 def run(keep: int, folders: list[str], items: list[str]) -> dict[str, np.ndarray]:
     """One process: {folder: (pairs, 3) total ms, page faults, system ms} per pair."""
     # Without the operator's malloc settings, which the pipeline would leave as set.
-    env = {key: value for key, value in os.environ.items()
-           if key not in MALLOC_ENVIRONMENT and key != 'GLIBC_TUNABLES'}
+    operator = malloc_settings(os.environ)
+    env = {key: value for key, value in os.environ.items() if key not in operator}
     env.update(OPENBLAS_NUM_THREADS='1', OMP_NUM_THREADS='1',
                PYTHONPATH=os.pathsep.join([str(ROOT)] + sys.path))
     out = subprocess.run([sys.executable, '-c', RUN, str(keep), ','.join(folders),

@@ -28,6 +28,7 @@ allocator's ``mallopt``, which usually ignores it.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 import ctypes
 import logging
 import os
@@ -37,8 +38,9 @@ logger = logging.getLogger(__name__)
 #: ``mallopt`` parameters (glibc's malloc.h).
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
-#: The largest value taken (MB): glibc's own ceiling for the thresholds it raises itself on a
-#: 64-bit system. Blocks larger than this are mapped on their own, as glibc would.
+#: The largest value taken (MB; the top of ``pipeline.keep_freed_memory_mb``'s range): glibc's
+#: own ceiling for the thresholds it raises itself on a 64-bit system. Blocks larger than this
+#: are mapped on their own, as glibc would.
 MAX_LIMIT_MB = 32
 #: Environment variables by which an operator sets glibc's malloc thresholds.
 MALLOC_ENVIRONMENT = ('MALLOC_MMAP_THRESHOLD_', 'MALLOC_TRIM_THRESHOLD_', 'MALLOC_TOP_PAD_',
@@ -59,9 +61,7 @@ def keep_freed_memory(limit_mb: int) -> bool:
     if not _glibc():
         logger.debug('not glibc: the allocator is left as it is')
         return False
-    operator = [name for name in MALLOC_ENVIRONMENT if name in os.environ]
-    if 'glibc.malloc.' in os.environ.get('GLIBC_TUNABLES', ''):
-        operator.append('GLIBC_TUNABLES')
+    operator = malloc_settings(os.environ)
     if operator:
         logger.info('glibc malloc thresholds set in the environment (%s): '
                     'pipeline.keep_freed_memory_mb is not applied', ', '.join(operator))
@@ -82,6 +82,14 @@ def keep_freed_memory(limit_mb: int) -> bool:
         logger.warning('glibc refused a trim threshold of %d MB', size >> 20)
         return False
     return True
+
+
+def malloc_settings(environ: Mapping[str, str]) -> list[str]:
+    """Return the names of the variables of ``environ`` that set glibc's malloc thresholds."""
+    names = [name for name in MALLOC_ENVIRONMENT if name in environ]
+    if 'glibc.malloc.' in environ.get('GLIBC_TUNABLES', ''):
+        names.append('GLIBC_TUNABLES')
+    return names
 
 
 def _glibc() -> bool:

@@ -13,6 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from .allocator import MAX_LIMIT_MB
+
 
 def _f(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
        choices: tuple[str, ...] | None = None, dynamic: bool = False) -> Any:
@@ -330,7 +332,8 @@ class PipelineConfig:
         'kernel time per pair). Every library and node in the process allocates under it, and '
         "each of glibc's per-thread arenas may keep this much free. Not applied where the "
         "environment sets glibc's malloc thresholds (MALLOC_*_, GLIBC_TUNABLES). 0: leave the "
-        'allocator alone (a value set before stays for the life of the process).', 0, 32)
+        'allocator alone (a value set before stays for the life of the process).', 0,
+        MAX_LIMIT_MB)
 
 
 @dataclass

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from stereo_vo_ros import Config, StereoOdometry
-from stereo_vo_ros.allocator import _glibc, keep_freed_memory, MALLOC_ENVIRONMENT
+from stereo_vo_ros.allocator import _glibc, keep_freed_memory, malloc_settings
 from stereo_vo_ros.parallel import ProcessWorker, Workers
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,8 +70,8 @@ def burst_faults(rounds: int = 12) -> tuple[int, list[int]]:
 
 def _clean_environment() -> dict[str, str]:
     """Return this environment without the malloc settings, with the repository importable."""
-    env = {key: value for key, value in os.environ.items()
-           if key not in MALLOC_ENVIRONMENT and key != 'GLIBC_TUNABLES'}
+    operator = malloc_settings(os.environ)
+    env = {key: value for key, value in os.environ.items() if key not in operator}
     env['PYTHONPATH'] = os.pathsep.join([str(ROOT)] + sys.path)
     return env
 
@@ -106,8 +106,8 @@ def test_pipeline_keeps_its_pairs_memory_whatever_the_process_set_before():
 def test_keep_freed_memory_leaves_the_operators_settings(monkeypatch, caplog):
     assert keep_freed_memory(0) is False  # left alone
     assert keep_freed_memory(-1) is False
-    for name in MALLOC_ENVIRONMENT:
-        monkeypatch.delenv(name, raising=False)
+    for name in malloc_settings(os.environ):
+        monkeypatch.delenv(name)
     monkeypatch.setenv('GLIBC_TUNABLES', 'glibc.malloc.trim_threshold=1000000')
     with caplog.at_level('INFO', logger='stereo_vo_ros.allocator'):
         assert keep_freed_memory(32) is False
@@ -123,8 +123,8 @@ def test_keep_freed_memory_leaves_the_operators_settings(monkeypatch, caplog):
 @needs_glibc
 @needs_process
 def test_worker_process_applies_the_pipelines_setting(monkeypatch):
-    for name in MALLOC_ENVIRONMENT + ('GLIBC_TUNABLES',):
-        monkeypatch.delenv(name, raising=False)
+    for name in malloc_settings(os.environ):
+        monkeypatch.delenv(name)
     # A preload item with a JSON argument ('module:function=JSON').
     workers = Workers(2, set_opencv=False, preload=('os:chdir="/"',))
     try:
