@@ -9,20 +9,25 @@ scene per kind says little (a single highway scene moves by a tenth of a percent
 that should not matter). For each variant (the default configuration with some items changed)
 this prints:
 
-* the time saved per pair on the KITTI clips: median total ms per pair, timed interleaved with
-  the default round by round (as ``bench_speed.py`` does; first pair left out, one thread), the
+* the time saved per pair on the KITTI clips (and on rendered urban scenes of the sizes given
+  with ``--render WxH``, 60 pairs each): median total ms per pair, timed interleaved with the
+  default round by round (as ``bench_speed.py`` does; first pair left out, one thread), the
   saving paired within rounds;
 * mean t_rel (%) over seeds of rendered presets (``bench_seeds.score``, renders cached with
   ``--cache``): the clean city and highway, the city with exposure jumps and vignetting, the
   highway with a rig error; and in how many of the scenes the variant is worse than the default;
 * end drift (%) and the median features tracked per pair on the KITTI clips in
   ``../shared/data`` (skipped, and said so, without them); ``--every N`` takes every N-th frame
-  of them (a lower frame rate: the motion prior's predictions are further off).
+  of them (a lower frame rate: the motion prior's predictions are further off). The rendered
+  scenes of ``--render`` get an end drift and features column too, at their own frame rate.
+  Without the clips the timing's reference pass runs on the first rendered scene, so it does
+  not compare with reference figures of the clips.
 
 Usage::
 
     python benchmarks/bench_stage_value.py [--data ../shared/data] [--seeds 0-7]
         [--frames 150] [--cache DIR] [--rounds 3] [--presets urban highway ...] [--every 1]
+        [--render 1280x720]
 
 Time figures need an otherwise idle machine; the accuracy figures do not.
 """
@@ -41,13 +46,15 @@ for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_accuracy import Clip, KITTI_CLIPS, load_real, run_clip, SHARED_DATA  # noqa: E402
+from bench_accuracy import (  # noqa: E402
+    Clip, KITTI_CLIPS, load_real, render, run_clip, SHARED_DATA)
 from bench_seeds import parse_seeds, score  # noqa: E402
 from bench_speed import reference_ms, total_ms  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
 from stereo_vo_ros.evaluation import metrics  # noqa: E402
+from stereo_vo_ros.synthetic import SequenceSpec  # noqa: E402
 
 #: (label, configuration items) of the variants; the default comes first.
 VARIANTS = (
@@ -67,6 +74,11 @@ VARIANTS = (
     ('stereo KLT: base', ['tracker.stereo_pyramid_levels=0']),
 )
 PRESETS = ('urban', 'highway', 'urban_photometric', 'highway_rig')
+
+
+def short(clip: Clip) -> str:
+    """Return a clip's column label: ``kitti06`` for ``kitti06_f0000-0050``, ``1280x720``."""
+    return clip.name.split('_')[0].split()[0]
 
 
 def config_of(items: list[str]) -> Config:
@@ -99,10 +111,22 @@ def main() -> int:
     ap.add_argument('--every', type=int, default=1,
                     help='take every N-th frame of the real clips: a lower frame rate, whose '
                          'larger steps put the motion prior further off')
+    ap.add_argument('--render', action='append', default=[], metavar='WxH',
+                    help='also time and run a rendered urban scene of this size (60 pairs), '
+                         'e.g. 1280x720 (repeatable)')
     args = ap.parse_args()
     if args.every < 1 or (args.every > 1 and args.rounds > 0):
         ap.error('--every takes N >= 1, and above 1 needs --rounds 0 (the timing and its '
                  'reference pass are for the clips at their own frame rate)')
+    render_sizes = []
+    for size in args.render:
+        try:
+            width, height = (int(v) for v in size.lower().split('x'))
+        except ValueError:
+            width = height = 0
+        if width < 64 or height < 64:
+            ap.error(f'--render wants WxH, at least 64x64, got {size!r}')
+        render_sizes.append((width, height))
     cv2.setNumThreads(1)
     seeds = parse_seeds(args.seeds)
     configs = [config_of(items) for _, items in VARIANTS]
@@ -114,7 +138,11 @@ def main() -> int:
         sizes = ', '.join(str(len(c.frames)) for c in clips)
         print(f'real clips: every {args.every}th frame ({sizes} pairs)')
     if not clips:
-        print(f'KITTI clips not found in {args.data}: no time and no real-clip drift')
+        print(f'KITTI clips not found in {args.data}: no real-clip time or drift')
+    for width, height in render_sizes:
+        clips.append(render(SequenceSpec.preset('urban', n_frames=60, width=width,
+                                                height=height), f'{width}x{height}'))
+        print(f'rendered urban scene {width}x{height}: {clips[-1].info}')
 
     saved = None
     if clips and args.rounds > 0:
@@ -124,7 +152,7 @@ def main() -> int:
         saved = ms[0:1] - ms  # paired within rounds
         for v, (label, _) in enumerate(VARIANTS):
             print(f'  {label:24s} ' + '  '.join(
-                f'{clip.name[:7]} {np.median(ms[v, c]):6.2f} ms (saves '
+                f'{short(clip)} {np.median(ms[v, c]):6.2f} ms (saves '
                 f'{np.median(saved[v, c]):+5.2f})' for c, clip in enumerate(clips)), flush=True)
 
     t_rel = np.full((len(configs), len(args.presets), len(seeds)), np.nan)
@@ -148,11 +176,11 @@ def main() -> int:
     print(f'\nseeds {args.seeds}, {args.frames} frames per scene; mean t_rel % (scenes worse '
           'than the default); end drift % and median features tracked per pair on the clips; ms '
           'saved per pair (median over rounds, range)')
-    head = f'{"variant":24s} ' + ' '.join(f'{c.name[:7] + " ms":>22s}' for c in clips) if \
+    head = f'{"variant":24s} ' + ' '.join(f'{short(c) + " ms":>22s}' for c in clips) if \
         saved is not None else f'{"variant":24s}'
     head += ' ' + ' '.join(f'{p[:18]:>18s}' for p in args.presets)
-    head += ' ' + ' '.join(f'{c.name[:7] + " drift":>13s}' for c in clips)
-    head += ' ' + ' '.join(f'{c.name[:7] + " feats":>13s}' for c in clips)
+    head += ' ' + ' '.join(f'{short(c) + " drift":>14s}' for c in clips)
+    head += ' ' + ' '.join(f'{short(c) + " feats":>14s}' for c in clips)
     print(head)
     for v, (label, _) in enumerate(VARIANTS):
         line = f'{label:24s} '
@@ -163,8 +191,8 @@ def main() -> int:
             worse = int(np.count_nonzero(t_rel[v, p] > t_rel[0, p])) if v else 0
             cell = f'{np.nanmean(t_rel[v, p]):.3f}' + (f' ({worse}/{len(seeds)})' if v else '')
             line += ' ' + cell.rjust(18)
-        line += ' ' + ' '.join(f'{drift[v, c]:13.2f}' for c in range(len(clips)))
-        line += ' ' + ' '.join(f'{tracked[v, c]:13.0f}' for c in range(len(clips)))
+        line += ' ' + ' '.join(f'{drift[v, c]:14.2f}' for c in range(len(clips)))
+        line += ' ' + ' '.join(f'{tracked[v, c]:14.0f}' for c in range(len(clips)))
         print(line)
     return 0
 

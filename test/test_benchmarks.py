@@ -56,6 +56,24 @@ def test_stage_value_scores_every_variant_on_a_rendered_scene(tmp_path):
         float(row[1])
 
 
+def test_stage_value_times_a_rendered_scene_of_the_size_asked(tmp_path):
+    """``--render WxH`` without the clips: timed, run and scored, a row for every variant."""
+    text, head, rows = stage_value_table('--data', str(tmp_path / 'no_clips'), '--presets',
+                                         '--rounds', '1', '--render', '320x240')
+    assert 'rendered urban scene 320x240' in text
+    assert head == ['variant', '320x240 ms', '320x240 drift', '320x240 feats'], head
+    assert [row[0] for row in rows] == variant_labels()
+    for row in rows:
+        saved, _, drift, feats = row[1:]
+        assert math.isfinite(float(saved)), row
+        assert math.isfinite(float(drift)) and float(drift) >= 0.0, row
+        assert float(feats) > 10, row
+    assert float(rows[0][1]) == 0.0  # the default against itself
+    bad = subprocess.run([sys.executable, str(STAGE_VALUE), '--presets', '--rounds', '0',
+                          '--render', '0x240'], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and '--render wants WxH' in bad.stderr
+
+
 def test_stage_value_runs_the_clips_at_a_lower_frame_rate(shared_data):
     """Every fifth frame of the KITTI clips: finite drift and features for every variant."""
     text, head, rows = stage_value_table('--data', str(shared_data), '--presets', '--rounds',
