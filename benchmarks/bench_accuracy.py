@@ -165,6 +165,8 @@ class Clip:
 
 #: The read-only clips next to the repository (``../shared/data``), as CI lays them out.
 SHARED_DATA = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+#: Pairs of the rendered urban scenes the timing benchmarks add with ``--render WxH``.
+RENDER_PAIRS = 60
 
 
 def load_real(folder: Path) -> Clip:
@@ -184,6 +186,21 @@ def render(spec: SequenceSpec, name: str) -> Clip:
         static.append(pair.static_left)
     info = f'rendered {len(frames)} pairs in {time.perf_counter() - t0:.0f} s'
     return Clip(name, frames, renderer.poses.copy(), info, static)
+
+
+def image_size(text: str) -> tuple[int, int] | None:
+    """Return (width, height) of ``'WxH'`` (pixels; ``x`` in either case), or None."""
+    try:
+        width, height = (int(v) for v in text.lower().split('x'))
+    except ValueError:
+        return None
+    return width, height
+
+
+def render_urban(width: int, height: int, name: str) -> Clip:
+    """Render the urban preset at ``width`` x ``height`` pixels (``RENDER_PAIRS`` pairs)."""
+    return render(SequenceSpec.preset('urban', n_frames=RENDER_PAIRS, width=width,
+                                      height=height), name)
 
 
 def wrong_calibration(calib: StereoCalibration) -> StereoCalibration:

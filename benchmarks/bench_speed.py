@@ -46,8 +46,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_accuracy import (  # noqa: E402
-    Clip, KITTI_CLIPS, LIBVISO2_MS, load_real, render, run_clip, SHARED_DATA, TARGET_TOTAL_MS,
-    verdict)
+    Clip, image_size, KITTI_CLIPS, LIBVISO2_MS, load_real, render, render_urban, run_clip,
+    SHARED_DATA, TARGET_TOTAL_MS, verdict)
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
@@ -136,12 +136,10 @@ def main() -> int:
         print('no KITTI clip: timing a rendered urban scene (1241x376, 60 frames) instead')
         clips.append(render(SequenceSpec.preset('urban', n_frames=60), 'urban'))
     for size in args.render:
-        try:
-            width, height = (int(v) for v in size.lower().split('x'))
-        except ValueError:
-            raise SystemExit(f'--render wants WxH, got {size!r}') from None
-        clips.append(render(SequenceSpec.preset('urban', n_frames=60, width=width,
-                                                height=height), f'urban{width}x{height}'))
+        if image_size(size) is None:
+            raise SystemExit(f'--render wants WxH, got {size!r}')
+        width, height = image_size(size)
+        clips.append(render_urban(width, height, f'urban{width}x{height}'))
     print(f'{len(clips)} clip(s): ' + ', '.join(
         f'{c.name} ({len(c.frames)} pairs, {c.size[0]}x{c.size[1]})' for c in clips))
     print('configurations: ' + '; '.join(f'[{i}] {n}' for i, n in enumerate(names)))

@@ -47,14 +47,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_accuracy import (  # noqa: E402
-    Clip, KITTI_CLIPS, load_real, render, run_clip, SHARED_DATA)
+    Clip, image_size, KITTI_CLIPS, load_real, render_urban, run_clip, SHARED_DATA)
 from bench_seeds import parse_seeds, score  # noqa: E402
 from bench_speed import reference_ms, total_ms  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from stereo_vo_ros.config import Config, overrides_from_items  # noqa: E402
 from stereo_vo_ros.evaluation import metrics  # noqa: E402
-from stereo_vo_ros.synthetic import SequenceSpec  # noqa: E402
 
 #: (label, configuration items) of the variants; the default comes first.
 VARIANTS = (
@@ -118,15 +117,10 @@ def main() -> int:
     if args.every < 1 or (args.every > 1 and args.rounds > 0):
         ap.error('--every takes N >= 1, and above 1 needs --rounds 0 (the timing and its '
                  'reference pass are for the clips at their own frame rate)')
-    render_sizes = []
-    for size in args.render:
-        try:
-            width, height = (int(v) for v in size.lower().split('x'))
-        except ValueError:
-            width = height = 0
-        if width < 64 or height < 64:
+    render_sizes = [image_size(size) for size in args.render]
+    for size, width_height in zip(args.render, render_sizes):
+        if width_height is None or min(width_height) < 64:
             ap.error(f'--render wants WxH, at least 64x64, got {size!r}')
-        render_sizes.append((width, height))
     cv2.setNumThreads(1)
     seeds = parse_seeds(args.seeds)
     configs = [config_of(items) for _, items in VARIANTS]
@@ -140,8 +134,7 @@ def main() -> int:
     if not clips:
         print(f'KITTI clips not found in {args.data}: no real-clip time or drift')
     for width, height in render_sizes:
-        clips.append(render(SequenceSpec.preset('urban', n_frames=60, width=width,
-                                                height=height), f'{width}x{height}'))
+        clips.append(render_urban(width, height, f'{width}x{height}'))
         print(f'rendered urban scene {width}x{height}: {clips[-1].info}')
 
     saved = None
