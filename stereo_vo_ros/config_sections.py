@@ -316,7 +316,9 @@ class PipelineConfig:
         'tracked features and the brightness maps of later passes run on a helper thread '
         'next to the temporal KLT passes, and OpenCV spreads '
         "KLT points over threads - 1 threads (OpenCV's thread count is per process). Results "
-        'do not depend on the number. 0: the cores, 1 to 4.', 0, 64)
+        'do not depend on the number. 0: the CPUs the process may use (its CPU affinity, '
+        "e.g. taskset or a container's cpuset, capped by a control-group CPU limit such as "
+        "a container's --cpus, rounded), 1 to 4.", 0, 64)
     worker: str = _f(
         'process', 'Where the replenishment runs with threads >= 2. process: a worker process '
         '(Linux; a thread elsewhere), which overlaps the motion estimate for real; thread: a '

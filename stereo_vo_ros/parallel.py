@@ -34,10 +34,12 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import importlib
 import json
 import logging
+import math
 import mmap
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
 import os
+from pathlib import Path
 import pickle
 import signal
 import socket
@@ -50,8 +52,11 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-#: ``pipeline.threads: 0`` uses the machine's cores, at most this many.
+#: ``pipeline.threads: 0`` uses the CPUs the process can use (``usable_cpus``), at most this many.
 MAX_AUTO_THREADS = 4
+#: Where the control groups' files are (Linux), and the file naming the process's groups.
+CGROUP_ROOT = '/sys/fs/cgroup'
+PROC_CGROUP = '/proc/self/cgroup'
 #: Arrays of at least this many bytes travel to the worker process in shared memory.
 SHARED_MIN_BYTES = 1 << 16
 #: Where POSIX shared memory shows as files (Linux).
@@ -69,12 +74,91 @@ def auto_threads(requested: int) -> int:
     """
     Return the thread count for ``pipeline.threads``.
 
-    0: the machine's cores, 1 to 4. The replenishment is one job per pair, so two threads (the
-    caller and one worker) take what it offers; more spread OpenCV's KLT points in the caller.
+    0: the CPUs this process may use (``usable_cpus``), 1 to 4. The replenishment is one job
+    per pair, so two threads (the caller and one worker) take what it offers; more spread
+    OpenCV's KLT points in the caller.
     """
     if requested > 0:
         return int(requested)
-    return max(1, min(os.cpu_count() or 1, MAX_AUTO_THREADS))
+    return max(1, min(usable_cpus(), MAX_AUTO_THREADS))
+
+
+def usable_cpus(cgroup_root: str = CGROUP_ROOT, proc_cgroup: str = PROC_CGROUP) -> int:
+    """
+    Return how many CPUs this process can keep busy (at least 1).
+
+    The CPUs it may run on (its affinity: ``taskset``, a cpuset, a container's
+    ``--cpuset-cpus``), capped by the CPU time its control groups allow (``cpu.max`` of cgroup
+    v2 or ``cpu.cfs_quota_us`` of v1, for the process's group and every group above it: a
+    container's ``--cpus``), rounded to the nearest whole CPU. ``os.cpu_count()`` counts the
+    machine's CPUs, which a confined process cannot use; threads beyond what it can use only
+    take turns.
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        cpus = os.cpu_count() or 1
+    quota = cgroup_cpu_limit(cgroup_root, proc_cgroup)
+    if quota is not None:
+        cpus = min(cpus, int(math.floor(quota + 0.5)))
+    return max(1, cpus)
+
+
+def cgroup_cpu_limit(cgroup_root: str = CGROUP_ROOT, proc_cgroup: str = PROC_CGROUP
+                     ) -> float | None:
+    """
+    Return the CPU time the process's control groups allow, in CPUs, or None if unlimited.
+
+    Reads the groups listed in ``proc_cgroup`` (``/proc/self/cgroup``) under ``cgroup_root``
+    (``/sys/fs/cgroup``), from the process's own group up to the root; the smallest limit
+    wins. Missing or unreadable files count as no limit.
+    """
+    try:
+        with open(proc_cgroup) as fh:
+            lines = fh.read().splitlines()
+    except OSError:
+        return None
+    root = Path(cgroup_root)
+    limits = []
+    for line in lines:
+        parts = line.split(':', 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, path = parts
+        if controllers == '':  # cgroup v2: the unified hierarchy
+            files = [('cpu.max', None)]
+            base = root
+        elif 'cpu' in controllers.split(','):  # cgroup v1: the cpu controller's hierarchy
+            files = [('cpu.cfs_quota_us', 'cpu.cfs_period_us')]
+            base = next((root / name for name in (controllers, 'cpu,cpuacct', 'cpu')
+                         if (root / name).is_dir()), None)
+            if base is None:
+                continue
+        else:
+            continue
+        group = Path(path.strip() or '/')
+        for folder in [group, *group.parents]:
+            for quota_file, period_file in files:
+                limit = _cpu_limit(base / folder.relative_to('/'), quota_file, period_file)
+                if limit is not None:
+                    limits.append(limit)
+    return min(limits) if limits else None
+
+
+def _cpu_limit(folder: Path, quota_file: str, period_file: str | None) -> float | None:
+    """One group's CPU limit (CPUs) from cgroup v2 ``cpu.max`` or v1's two files, or None."""
+    try:
+        if period_file is None:
+            quota, period = (folder / quota_file).read_text().split()[:2]
+        else:
+            quota = (folder / quota_file).read_text().strip()
+            period = (folder / period_file).read_text().strip()
+        if quota in ('max', '-1'):
+            return None
+        value = float(quota) / float(period)
+    except (OSError, ValueError):
+        return None
+    return value if value > 0 and math.isfinite(value) else None
 
 
 class _Done:

@@ -17,6 +17,7 @@ from pathlib import Path
 import pickle
 import resource
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -146,11 +147,63 @@ def test_hung_worker_process_is_stopped_and_the_caller_goes_on(caplog, monkeypat
 
 def test_auto_threads_and_config_range():
     assert auto_threads(3) == 3
-    assert auto_threads(0) == max(1, min(os.cpu_count() or 1, 4))
+    assert auto_threads(0) == max(1, min(len(os.sched_getaffinity(0)), 4))
     with pytest.raises(ConfigError):
         Config().replace(**{'pipeline.threads': -1})
     with pytest.raises(ConfigError):
         Config().replace(**{'pipeline.worker': 'gpu'})
+
+
+def _cgroup(tmp_path, lines, files):
+    """A fake ``/sys/fs/cgroup`` tree and ``/proc/self/cgroup``; returns their paths."""
+    root = tmp_path / 'cgroup'
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text)
+    proc = tmp_path / 'proc_cgroup'
+    proc.write_text(''.join(line + '\n' for line in lines))
+    return str(root), str(proc)
+
+
+def test_cgroup_cpu_limits_v2_v1_nested_and_unlimited(tmp_path):
+    """A container's ``--cpus`` (cgroup v2 or v1), the smallest of nested limits, no limit."""
+    limit = parallel.cgroup_cpu_limit
+    v2 = _cgroup(tmp_path / 'v2', ['0::/robot/vo'], {
+        'cpu.max': 'max 100000\n', 'robot/cpu.max': '150000 100000\n',
+        'robot/vo/cpu.max': '300000 100000\n'})
+    assert limit(*v2) == pytest.approx(1.5)  # the parent's limit is the smaller
+    unlimited = _cgroup(tmp_path / 'none', ['0::/'], {'cpu.max': 'max 100000\n'})
+    assert limit(*unlimited) is None
+    v1 = _cgroup(tmp_path / 'v1', ['4:memory:/x', '2:cpu,cpuacct:/docker/abc', '0::/'], {
+        'cpu,cpuacct/cpu.cfs_quota_us': '50000\n', 'cpu,cpuacct/cpu.cfs_period_us': '100000\n',
+        'cpu,cpuacct/docker/abc/cpu.cfs_quota_us': '-1\n',
+        'cpu,cpuacct/docker/abc/cpu.cfs_period_us': '100000\n'})
+    assert limit(*v1) == pytest.approx(0.5)
+    # Garbage, missing files and no /proc/self/cgroup count as no limit.
+    broken = _cgroup(tmp_path / 'broken', ['0::/a', 'nonsense'], {'a/cpu.max': 'lots\n'})
+    assert limit(*broken) is None
+    assert limit(str(tmp_path), str(tmp_path / 'missing')) is None
+    # The count rounds the limit to the nearest CPU, at least one, at most the affinity.
+    cpus = len(os.sched_getaffinity(0))
+    assert parallel.usable_cpus(*v1) == 1
+    assert parallel.usable_cpus(*v2) == min(cpus, 2)
+    assert parallel.usable_cpus(*unlimited) == cpus
+
+
+def test_threads_follow_the_cpus_the_process_may_use(tmp_path):
+    """Pinned to one CPU (``taskset``, a cpuset), ``pipeline.threads: 0`` runs inline."""
+    script = (
+        'import os, sys\n'
+        'os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n'
+        'from stereo_vo_ros import Config, StereoOdometry\n'
+        'from stereo_vo_ros.parallel import auto_threads\n'
+        'odometry = StereoOdometry(Config().replace(**{"pipeline.threads": 0}))\n'
+        'print(auto_threads(0), odometry.workers.threads, odometry.workers.overlaps)\n'
+        'odometry.close()\n')
+    out = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ['1', '1', 'False']
 
 
 def _run(frames, **items):
