@@ -314,8 +314,8 @@ class PipelineConfig:
         'replenishment of features (detection and stereo matching of new corners) runs on '
         'the worker (see worker) while the motion is estimated, the aperture checks of the '
         'tracked features and the brightness maps of later passes run on a helper thread '
-        'next to the temporal KLT passes, and OpenCV spreads '
-        "KLT points over threads - 1 threads (OpenCV's thread count is per process). Results "
+        'next to the temporal KLT passes, and OpenCV may spread '
+        "its own calls over threads - 1 threads (OpenCV's thread count is per process). Results "
         'do not depend on the number. 0: the CPUs the process may use (its CPU affinity, '
         "e.g. taskset or a container's cpuset, capped by a control-group CPU limit such as "
         "a container's --cpus, rounded), 1 to 4.", 0, 64)

@@ -75,8 +75,8 @@ def auto_threads(requested: int) -> int:
     Return the thread count for ``pipeline.threads``.
 
     0: the CPUs this process may use (``usable_cpus``), 1 to 4. The replenishment is one job
-    per pair, so two threads (the caller and one worker) take what it offers; more spread
-    OpenCV's KLT points in the caller.
+    per pair, so two threads (the caller and one worker) take what it offers; more only give
+    OpenCV's own calls in the caller more threads.
     """
     if requested > 0:
         return int(requested)

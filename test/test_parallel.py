@@ -155,7 +155,7 @@ def test_auto_threads_and_config_range():
 
 
 def _cgroup(tmp_path, lines, files):
-    """A fake ``/sys/fs/cgroup`` tree and ``/proc/self/cgroup``; returns their paths."""
+    """Write a fake ``/sys/fs/cgroup`` tree and ``/proc/self/cgroup``; return their paths."""
     root = tmp_path / 'cgroup'
     for name, text in files.items():
         (root / name).parent.mkdir(parents=True, exist_ok=True)

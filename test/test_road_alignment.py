@@ -235,7 +235,7 @@ def test_pipeline_fuses_the_road_and_can_do_without(highway):
     calib, frames, _ = highway
     spec = SequenceSpec.preset('highway', seed=2)
     renderer = StereoRenderer(spec)
-    frames = frames + [renderer.render(i) for i in range(3, 8)]
+    frames = frames + [renderer.render(i) for i in range(3, 21)]
     runs = {}
     for enabled in (True, False):
         vo = StereoOdometry(Config().replace(**{'road.enabled': enabled}))
@@ -247,13 +247,14 @@ def test_pipeline_fuses_the_road_and_can_do_without(highway):
     assert sum(fused) >= len(fused) - 2
     assert all('road' in r.timings_ms for r in runs[True])
     assert not any(r.road_fused or 'road' in r.timings_ms for r in runs[False])
-    # What the road measures, the forward step, is closer to the truth (pairs 2-7, |ratio - 1|:
-    # 0.20 % against 0.30 % for the features alone); both runs end within 6 cm after 17.5 m.
+    # What the road measures, the forward step, is closer to the truth (pairs 2-20, |ratio - 1|:
+    # 0.24 % against 0.41 % for the features alone; over a handful of pairs either can be
+    # closer); both runs are within 6 cm of the truth after 17.5 m (pair 7).
     assert forward_step_error(runs[True], frames) < \
         0.8 * forward_step_error(runs[False], frames)
-    truth = frames[-1].T_world_cam[:3, 3]
+    truth = frames[7].T_world_cam[:3, 3]
     for results in runs.values():
-        assert np.linalg.norm(results[-1].T_world_cam[:3, 3] - truth) < 0.06
+        assert np.linalg.norm(results[7].T_world_cam[:3, 3] - truth) < 0.06
 
 
 def test_pipeline_refines_the_road_plane_through_the_rig_correction():

@@ -1,8 +1,8 @@
 """
 KLT passes and the consistency checks of the light adaptive feature tracking paper (Huang et al.).
 
-One pyramidal Lucas-Kanade pass (``lk_pass``) wraps ``cv2.calcOpticalFlowPyrLK``; the checks are
-pure functions on the points it returns:
+One pyramidal Lucas-Kanade pass (``lk_pass``, on pyramids ``lucas_kanade`` builds once per image);
+the checks are pure functions on the points it returns:
 
 * forward-backward check (eq. 4) and left-right check (eq. 5): ``round_trip_error`` below the
   threshold delta1 / delta2;
@@ -26,10 +26,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numba
 import numpy as np
 
+from .lucas_kanade import ImagePyramid, track
 from ..config import TRACKER_VARIANTS
 from ..errors import ConfigError
 from ..estimation.camera import StereoCalibration
@@ -94,17 +94,17 @@ class CheckSet:
         return table[variant]
 
 
-def lk_pass(img_from: np.ndarray, img_to: np.ndarray, pts: np.ndarray,
-            guess: np.ndarray | None, levels: int, win_size_px: int,
+def lk_pass(img_from: np.ndarray | ImagePyramid, img_to: np.ndarray | ImagePyramid,
+            pts: np.ndarray, guess: np.ndarray | None, levels: int, win_size_px: int,
             max_iterations: int, border_px: float | None = None
             ) -> tuple[np.ndarray, np.ndarray]:
     """
-    Track points from one image into another with pyramidal KLT.
+    Track points from one image into another with pyramidal KLT (``lucas_kanade.track``).
 
     Parameters
     ----------
-    img_from, img_to : np.ndarray
-        (H, W) uint8 grey images.
+    img_from, img_to : np.ndarray or ImagePyramid
+        (H, W) uint8 grey images, or their pyramids (built once, shared between passes).
     pts : np.ndarray
         (N, 2) float pixel positions in ``img_from`` (raw pixels).
     guess : np.ndarray or None
@@ -133,23 +133,18 @@ def lk_pass(img_from: np.ndarray, img_to: np.ndarray, pts: np.ndarray,
     src = np.ascontiguousarray(pts, np.float32).reshape(n, 2)
     if n == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(max_iterations),
-                KLT_EPSILON_PX)
-    win = (int(win_size_px), int(win_size_px))
-    if guess is None:
-        out, status, _ = cv2.calcOpticalFlowPyrLK(
-            img_from, img_to, src.reshape(-1, 1, 2), None, winSize=win, maxLevel=int(levels),
-            criteria=criteria)
-    else:
-        init = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2).copy()
-        bad = ~np.all(np.isfinite(init.reshape(n, 2)), axis=1)
-        init.reshape(n, 2)[bad] = src[bad]
-        out, status, _ = cv2.calcOpticalFlowPyrLK(
-            img_from, img_to, src.reshape(-1, 1, 2), init, winSize=win, maxLevel=int(levels),
-            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    tracked = out.reshape(n, 2)
+    win = int(win_size_px)
+    pyr_from, pyr_to = (p if isinstance(p, ImagePyramid) else ImagePyramid(p, win)
+                        for p in (img_from, img_to))
+    init = None
+    if guess is not None:
+        init = np.array(guess, np.float32).reshape(n, 2)
+        bad = ~np.all(np.isfinite(init), axis=1)
+        init[bad] = src[bad]
+    tracked, ok = track(pyr_from, pyr_to, src, init, int(levels), win, int(max_iterations),
+                        KLT_EPSILON_PX)
     border = win_size_px // 2 if border_px is None else border_px
-    ok = status.reshape(n).astype(bool) & inside_image(tracked, img_to.shape[::-1], border)
+    ok &= inside_image(tracked, pyr_to.image.shape[::-1], border)
     tracked = np.where(ok[:, None], tracked, src).astype(np.float32)
     return tracked, ok
 

@@ -21,6 +21,7 @@ from .affine_klt import refine_matches
 from .detection import bucket_ids, detect_corners, squared_distances
 from .klt_checks import (disparity_constraint, disparity_in_range, eigen_ratio, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
+from .lucas_kanade import ImagePyramid
 from ..config import BucketingConfig, TrackerConfig
 from ..estimation.camera import StereoCalibration
 
@@ -199,10 +200,12 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     pr = np.empty_like(pts)
     ok = np.zeros(len(pts), bool)
     points['new_stereo_fwd'] = len(pts)
+    # Both passes, and both groups of the forward pass, use one pyramid of each image.
+    pyr_left, pyr_right = ImagePyramid(left, win), ImagePyramid(right_matched, win)
     for sel, levels in ((guided, cfg.stereo_pyramid_levels),
                         (~guided, cfg.pyramid_levels)):
         if sel.any():
-            pr[sel], ok[sel] = lk_pass(left, right_matched, pts[sel], guess[sel], levels, win,
+            pr[sel], ok[sel] = lk_pass(pyr_left, pyr_right, pts[sel], guess[sel], levels, win,
                                        iters)
     pts, pr = pts[ok], pr[ok]
     il, ir = calib.undistort_left(pts), calib.undistort_right(pr)
@@ -213,7 +216,7 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     timings['stereo_fwd'] = (clock() - t) * 1e3
     t = clock()
     points['new_stereo_bwd'] = len(pts)
-    back, ok = lk_pass(right_matched, left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
+    back, ok = lk_pass(pyr_right, pyr_left, pr, pts, REVERSE_PYRAMID_LEVELS, win, iters)
     ok &= round_trip_error(pts, back) < cfg.lr_threshold_px
     timings['stereo_bwd'] = (clock() - t) * 1e3
     if cfg.affine_refinement and ok.any():

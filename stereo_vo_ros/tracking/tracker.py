@@ -47,6 +47,7 @@ from .features import as_grey_u8, empty_correspondences, FeatureSet
 from .klt_checks import (aperture_checks, bicircular_error, BICIRCULAR_MODES, CheckSet,
                          disparity_constraint, disparity_in_range, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
+from .lucas_kanade import border_px, ImagePyramid
 from .photometric import PhotometricMatcher
 from .replenish import ExpectedFlow, NewCorners, replenish, ReplenishJob
 from .stats import (CHECKS, PASSES, PendingTrack, STAGES, TrackerStats,  # noqa: F401
@@ -134,6 +135,8 @@ class StereoTracker:
         self._bits = 8
         self._barren: np.ndarray | None = None  # (rows, cols) frames to skip each bucket
         self._photo = PhotometricMatcher()
+        #: KLT pyramids of the images of this and the last pair (``_pyramid``).
+        self._pyramids: list[ImagePyramid] = []
 
     @property
     def num_features(self) -> int:
@@ -265,6 +268,8 @@ class StereoTracker:
                                                              after_checks)
         queued = after_checks()  # (called already when the pair was tracked)
         self._prev = (left8, right8)
+        # The next pair's KLT passes reuse this pair's pyramids; the others are dropped.
+        self._pyramids = [p for p in self._pyramids if p.image is left8 or p.image is right8]
         if stats.initialized or self.cfg.replenish_after not in ('stereo', 'temporal'):
             new = self._replenish_survivors(left8, right8, calib, stats, prior)
         self._pending = _Finish(self, left8, right8, stats, corr, raw, new, t_start)
@@ -434,8 +439,9 @@ class StereoTracker:
             passed = self._aperture_passed(aperture, failed)
         track = np.arange(n_prev) if passed is None else np.flatnonzero(passed)
         cur_l = f.left_raw.copy()
-        cur_l[track], ok = lk_pass(prev_left, left_m, f.left_raw[track],
-                                   None if pred is None else pred[0][track], levels, win, iters)
+        cur_l[track], ok = lk_pass(self._pyramid(prev_left), self._pyramid(left_m),
+                                   f.left_raw[track], None if pred is None else pred[0][track],
+                                   levels, win, iters)
         tracked = np.zeros(n_prev, bool)
         tracked[track] = ok
         if passed is None:
@@ -457,8 +463,8 @@ class StereoTracker:
                                               f.left_raw[alive], cur_l[alive])
         t = clock()
         npts['temporal_bwd'] = len(alive)
-        back, ok = lk_pass(left_m, prev_left, cur_l[alive], f.left_raw[alive],
-                           REVERSE_PYRAMID_LEVELS, win, iters)
+        back, ok = lk_pass(self._pyramid(left_m), self._pyramid(prev_left), cur_l[alive],
+                           f.left_raw[alive], REVERSE_PYRAMID_LEVELS, win, iters)
         ok &= round_trip_error(f.left_raw[alive], back) < cfg.fb_threshold_px
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
@@ -498,8 +504,8 @@ class StereoTracker:
         npts['stereo_fwd'] = len(alive)
         right_m, spent = self._matched(left, right, cur_l[alive], cur_l[alive] + offset, stats)
         t += spent
-        cur_r, ok = lk_pass(left, right_m, cur_l[alive], cur_l[alive] + offset,
-                            cfg.stereo_pyramid_levels, win, iters)
+        cur_r, ok = lk_pass(self._pyramid(left), self._pyramid(right_m), cur_l[alive],
+                            cur_l[alive] + offset, cfg.stereo_pyramid_levels, win, iters)
         failed['stereo'] = int(np.count_nonzero(~ok))
         alive, cur_r = alive[ok], cur_r[ok]
         ideal_l = calib.undistort_left(cur_l[alive])
@@ -521,8 +527,8 @@ class StereoTracker:
         # Left-right check (eq. 5); without the disparity constraint the range check follows.
         t = clock()
         npts['stereo_bwd'] = len(alive)
-        back, ok = lk_pass(right_m, left, cur_r, cur_l[alive], REVERSE_PYRAMID_LEVELS, win,
-                           iters)
+        back, ok = lk_pass(self._pyramid(right_m), self._pyramid(left), cur_r, cur_l[alive],
+                           REVERSE_PYRAMID_LEVELS, win, iters)
         ok &= round_trip_error(cur_l[alive], back) < cfg.lr_threshold_px
         failed['lr'] = int(np.count_nonzero(~ok))
         if not checks.disparity_constraint:
@@ -558,13 +564,14 @@ class StereoTracker:
             prev_right_m, spent = self._matched(right, prev_right, cur_r, f.right_raw[alive],
                                                 stats)
             t += spent
-            back_r, ok = lk_pass(right, prev_right_m, cur_r, guess,
+            back_r, ok = lk_pass(self._pyramid(right), self._pyramid(prev_right_m), cur_r, guess,
                                  cfg.predicted_pyramid_levels, win, iters)
             again = None
             if cfg.bicircular_mode == 'roundtrip':
                 again = np.full_like(cur_r, np.nan)
-                again[ok], ok2 = lk_pass(prev_right_m, right, back_r[ok], cur_r[ok],
-                                         REVERSE_PYRAMID_LEVELS, win, iters)
+                again[ok], ok2 = lk_pass(self._pyramid(prev_right_m), self._pyramid(right),
+                                         back_r[ok], cur_r[ok], REVERSE_PYRAMID_LEVELS, win,
+                                         iters)
                 ok[ok] = ok2
             err = bicircular_error(cfg.bicircular_mode, cur_r, back_r, f.right_raw[alive], again)
             ok &= err < delta_d
@@ -584,6 +591,21 @@ class StereoTracker:
                               cur_r.astype(np.float64), prev.ids.copy(), ages.copy())
         self._feats = FeatureSet(prev.ids, ages, cur_l, cur_r, ideal_l, ideal_r)
         return corr, raw, klt_r, new
+
+    def _pyramid(self, img: np.ndarray) -> ImagePyramid:
+        """
+        Return the KLT pyramid of an image of this or the last pair, built once per image.
+
+        Images are told apart by identity: the pair's images, the last pair's, and the
+        brightness-mapped ones (``_matched``), which are new arrays.
+        """
+        win = self.cfg.win_size_px
+        for pyr in self._pyramids:
+            if pyr.image is img and pyr.border >= border_px(win):
+                return pyr
+        pyr = ImagePyramid(img, win)
+        self._pyramids.append(pyr)
+        return pyr
 
     def _matched(self, reference: np.ndarray, img: np.ndarray, pts_reference: np.ndarray | None,
                  pts_img: np.ndarray | None, stats: TrackerStats) -> tuple[np.ndarray, float]:
