@@ -11,11 +11,11 @@ estimates the motion. Where it runs is ``pipeline.worker``:
   which hold the GIL, so in one process they take turns.
 * ``thread``: a background thread (no extra process; measured to overlap little).
 
-Short work that overlaps an OpenCV call of the caller goes to a helper thread instead
-(``submit_local``; with two or more threads, whatever the kind): OpenCV's KLT releases the GIL,
-so NumPy in the helper runs next to it without copying images to another process. The tracker
-runs its aperture checks there while it tracks the features, then the brightness maps of its
-later passes, and the temporal affine refinement (a compiled kernel, which releases the GIL
+Short work that overlaps a call of the caller that releases the GIL (a KLT pass, an OpenCV
+call) goes to a helper thread instead (``submit_local``; with two or more threads, whatever the
+kind), so NumPy in the helper runs next to it without copying images to another process. The
+tracker runs its aperture checks there while it tracks the features, then the brightness maps of
+its later passes, and the temporal affine refinement (a compiled kernel, which releases the GIL
 too) while its forward-backward check runs.
 
 With one thread (``pipeline.threads: 1``) everything runs inline in the caller's thread, in the
@@ -487,7 +487,7 @@ class Workers:
         """
         Start ``fn(*args)`` on the helper thread of this process; ``.result()`` joins it.
 
-        For short work next to an OpenCV call of the caller (which releases the GIL): the
+        For short work next to a call of the caller that releases the GIL (a KLT pass): the
         arguments are shared, not copied, and must not change until the result is taken.
         Inline (one thread), ``fn`` runs before this returns.
         """
