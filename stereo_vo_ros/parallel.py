@@ -136,7 +136,10 @@ def cgroup_cpu_limit(cgroup_root: str = CGROUP_ROOT, proc_cgroup: str = PROC_CGR
                 continue
         else:
             continue
-        group = Path(path.strip() or '/')
+        path = path.strip() or '/'
+        if not path.startswith('/') or '..' in Path(path).parts:
+            continue  # outside this namespace's view of the groups
+        group = Path(path)
         for folder in [group, *group.parents]:
             for quota_file, period_file in files:
                 limit = _cpu_limit(base / folder.relative_to('/'), quota_file, period_file)

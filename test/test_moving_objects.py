@@ -446,7 +446,9 @@ def test_road_vehicle_profile_keeps_its_speed_past_vehicles_that_keep_pace():
     assert profile.vehicle.acceleration_std > 0
     sparse = profile.replace(**{'tracker.max_features': 120})
     ratios, _ = step_ratios(sparse.replace(**{'vehicle.acceleration_std': 0.0}), calib, frames)
-    assert min(ratios) < 0.6  # the failure the acceleration bound is for
+    # The failure the acceleration bound is for (min ratio 0.20 here). Whether a scene shows it
+    # hangs on exact tracks: with 200 features it showed with OpenCV's KLT, not with this one.
+    assert min(ratios) < 0.6
     for config in (sparse, profile):
         ratios, statuses = step_ratios(config, calib, frames)
         assert all(status is TrackingStatus.OK for status in statuses)

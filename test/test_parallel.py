@@ -147,7 +147,8 @@ def test_hung_worker_process_is_stopped_and_the_caller_goes_on(caplog, monkeypat
 
 def test_auto_threads_and_config_range():
     assert auto_threads(3) == 3
-    assert auto_threads(0) == max(1, min(len(os.sched_getaffinity(0)), 4))
+    assert auto_threads(0) == max(1, min(parallel.usable_cpus(), 4))
+    assert 1 <= parallel.usable_cpus() <= len(os.sched_getaffinity(0))
     with pytest.raises(ConfigError):
         Config().replace(**{'pipeline.threads': -1})
     with pytest.raises(ConfigError):
@@ -180,7 +181,8 @@ def test_cgroup_cpu_limits_v2_v1_nested_and_unlimited(tmp_path):
         'cpu,cpuacct/docker/abc/cpu.cfs_period_us': '100000\n'})
     assert limit(*v1) == pytest.approx(0.5)
     # Garbage, missing files and no /proc/self/cgroup count as no limit.
-    broken = _cgroup(tmp_path / 'broken', ['0::/a', 'nonsense'], {'a/cpu.max': 'lots\n'})
+    broken = _cgroup(tmp_path / 'broken', ['0::/a', 'nonsense', '0::relative', '0::/../../x'],
+                     {'a/cpu.max': 'lots\n'})
     assert limit(*broken) is None
     assert limit(str(tmp_path), str(tmp_path / 'missing')) is None
     # The count rounds the limit to the nearest CPU, at least one, at most the affinity.
@@ -190,18 +192,20 @@ def test_cgroup_cpu_limits_v2_v1_nested_and_unlimited(tmp_path):
     assert parallel.usable_cpus(*unlimited) == cpus
 
 
-def test_threads_follow_the_cpus_the_process_may_use(tmp_path):
+def test_threads_follow_the_cpus_the_process_may_use():
     """Pinned to one CPU (``taskset``, a cpuset), ``pipeline.threads: 0`` runs inline."""
     script = (
         'import os, sys\n'
         'os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})\n'
         'from stereo_vo_ros import Config, StereoOdometry\n'
+        'import stereo_vo_ros\n'
+        'assert stereo_vo_ros.__file__.startswith(os.getcwd()), stereo_vo_ros.__file__\n'
         'from stereo_vo_ros.parallel import auto_threads\n'
         'odometry = StereoOdometry(Config().replace(**{"pipeline.threads": 0}))\n'
         'print(auto_threads(0), odometry.workers.threads, odometry.workers.overlaps)\n'
         'odometry.close()\n')
     out = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
-                         timeout=300, cwd=tmp_path)
+                         timeout=300, cwd=Path(__file__).resolve().parents[1])
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ['1', '1', 'False']
 

@@ -3,19 +3,19 @@ Pyramidal Lucas-Kanade (KLT) point tracking on image pyramids built once per ima
 
 The tracker's KLT passes see each image several times: the left image of a pair is the target
 of the temporal pass, the source of the forward-backward and stereo passes, and the source of
-the next pair's temporal pass. ``cv2.calcOpticalFlowPyrLK`` rebuilds the pyramid and the
-Scharr derivative images of the whole image at every call, which took about half of each
-pass, and OpenCV's Python binding does not accept a prebuilt pyramid. Here an ``ImagePyramid``
-holds the padded levels of one image (built on first use, ``cv2.pyrDown`` and a reflected
-border as OpenCV builds them) and ``track`` runs Bouguet's pyramidal Lucas-Kanade on them with a
-compiled kernel: OpenCV's algorithm in OpenCV's fixed point (``calcOpticalFlowPyrLK`` with
-``minEigThreshold`` 1e-4 and the same termination criteria), with the derivatives computed only
-in the windows of the points (Scharr, as OpenCV) instead of over whole images. Its sums are
-single-precision floats where OpenCV's are partly integers: on the KITTI clips the tracked
-positions differ from OpenCV's by 1e-4 px or less (median) and 0.011 px or less at the 99th
-percentile of each kind of pass (more than 0.01 px: 1.1 % or fewer of the new corners searched
-from three levels up, 0.2 % or fewer elsewhere), and the two fail the same points but for 1 in
-2,500 or fewer.
+the next pair's temporal pass. ``cv2.calcOpticalFlowPyrLK`` rebuilds the pyramid and the Scharr
+derivative images of the whole image at every call (40-60 % of a pass of 120-200 points at
+1241x376), and OpenCV's Python binding does not accept a prebuilt pyramid. Here an
+``ImagePyramid`` holds the padded levels of one image (built on first use, ``cv2.pyrDown`` and
+a reflected border as OpenCV builds them) and ``track`` runs Bouguet's pyramidal Lucas-Kanade
+on them with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point
+(``calcOpticalFlowPyrLK`` with ``minEigThreshold`` 1e-4 and the same termination criteria),
+with the derivatives computed only in the windows of the points (Scharr, as OpenCV) instead of
+over whole images. Its sums are single-precision floats where OpenCV's are partly integers: on
+the KITTI clips the tracked positions differ from OpenCV's by 1e-4 px or less (median) and
+0.011 px or less at the 99th percentile of each kind of pass (more than 0.01 px: 1.1 % or fewer
+of the new corners searched from three levels up, 0.2 % or fewer elsewhere), and the two fail
+the same points but for 1 in 2,500 or fewer.
 
 Pixel coordinates are (x right, y down) of the base image.
 """
@@ -51,7 +51,7 @@ class ImagePyramid:
     Level 0 is the image; level k + 1 is ``cv2.pyrDown`` of level k. Each level is kept padded
     by ``border_px(win_size_px)`` pixels of reflected border (``BORDER_REFLECT_101``, as
     OpenCV pads its KLT pyramids), so a window that reaches past the image reads the image's
-    reflection.
+    reflection. Levels are built on first use without a lock: one thread at a time.
 
     Parameters
     ----------
@@ -118,16 +118,16 @@ def track(src: ImagePyramid, dst: ImagePyramid, pts: np.ndarray, guess: np.ndarr
     pts : np.ndarray
         (N, 2) float positions in ``src`` (pixels).
     guess : np.ndarray or None
-        (N, 2) float initial positions in ``dst`` (pixels, all finite); None starts every point
-        at its position in ``src``.
+        (N, 2) float initial positions in ``dst`` (pixels); None starts every point at its
+        position in ``src``. Points with a non-finite guess fail.
     levels : int
         Pyramid levels above the base image (limited as ``ImagePyramid.usable_levels``).
     win_size_px : int
         Side of the square window (pixels).
     max_iterations : int
-        Iterations per level at most.
+        Iterations per level at most (OpenCV's limit: 0 to 100).
     epsilon_px : float
-        A level stops once a step moves the point less than this (pixels).
+        A level stops once a step moves the point less than this (pixels; 0 to 10).
 
     Returns
     -------
@@ -150,15 +150,18 @@ def track(src: ImagePyramid, dst: ImagePyramid, pts: np.ndarray, guess: np.ndarr
         nxt = prev.copy()
     else:
         nxt = np.array(guess, np.float32).reshape(n, 2)
+        ok &= np.all(np.isfinite(nxt), axis=1)
     if not n:
         return nxt, ok
+    # OpenCV's limits of the termination criteria.
+    iterations = min(max(int(max_iterations), 0), 100)
+    epsilon = min(max(float(epsilon_px), 0.0), 10.0)
     top = src.usable_levels(int(levels), win)
     for level in range(top, -1, -1):
         w, h = src.size(level)
         _track_level(src.padded(level), dst.padded(level), src.border, dst.border, h, w, prev,
-                     nxt, ok, level, level == top, guess is not None, win,
-                     int(max_iterations), np.float32(epsilon_px * epsilon_px),
-                     np.float32(MIN_EIGENVALUE))
+                     nxt, ok, level, level == top, guess is not None, win, iterations,
+                     np.float32(epsilon * epsilon), MIN_EIGENVALUE)
     return nxt, ok
 
 
@@ -191,7 +194,7 @@ _i64, _f32, _b1 = numba.types.int64, numba.types.float32, numba.types.boolean
 
 @kernel([numba.types.void(
     _u8, _u8, _i64, _i64, _i64, _i64, readonly(_f32, 2), numba.types.Array(_f32, 2, 'C'),
-    numba.types.Array(_b1, 1, 'C'), _i64, _b1, _b1, _i64, _i64, _f32, _f32)])
+    numba.types.Array(_b1, 1, 'C'), _i64, _b1, _b1, _i64, _i64, _f32, numba.types.float64)])
 def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_guess, win,
                  max_iter, eps2, min_eig):
     """
@@ -212,7 +215,7 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
     another order.
     """
     n = prev.shape[0]
-    wc = ((win + 15) // 16) * 16  # window columns processed, a multiple of 16
+    wc = ((win + CHUNK - 1) // CHUNK) * CHUNK  # window columns processed
     half = np.float32((win - 1) * 0.5)
     scale = np.float32(1.0 / (1 << level))
     si = img_i.shape[1]
@@ -341,9 +344,9 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
         a12 *= fixed
         a22 *= fixed
         det = a11 * a22 - a12 * a12
-        min_eigenvalue = (a22 + a11 - math.sqrt((a11 - a22) * (a11 - a22) + 4 * a12 * a12)) \
-            / (2 * win * win)
-        if min_eigenvalue < min_eig or det < 1.1920929e-07:
+        disc = (a11 - a22) * (a11 - a22) + np.float32(4) * a12 * a12
+        min_eigenvalue = (a22 + a11 - np.float32(math.sqrt(disc))) / np.float32(2 * win * win)
+        if min_eigenvalue < min_eig or det < np.float32(1.1920929e-07):
             if level == 0:
                 ok[i] = False
             continue
