@@ -11,11 +11,11 @@ a reflected border as OpenCV builds them) and ``track`` runs Bouguet's pyramidal
 on them with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point
 (``calcOpticalFlowPyrLK`` with ``minEigThreshold`` 1e-4 and the same termination criteria),
 with the derivatives computed only in the windows of the points (Scharr, as OpenCV) instead of
-over whole images. Its sums of products are exact where OpenCV's are single-precision floats:
-on the KITTI clips the tracked positions equal OpenCV's for most points and differ by 0.00075
-px or less at the 99th percentile of each kind of pass (more than 0.01 px: 0.4 % or fewer of
-the new corners searched from three levels up, 0.07 % or fewer elsewhere), and the two fail the
-same points but for 1 in 2,500 or fewer.
+over whole images. Its sums are single-precision floats where OpenCV's are partly integers: on
+the KITTI clips the tracked positions equal OpenCV's for most points and differ by 0.0013 px or
+less at the 99th percentile of each kind of pass (more than 0.01 px: 0.5 % or fewer of the new
+corners searched from three levels up, 0.05 % or fewer elsewhere), and the two fail the same
+points but for 1 in 2,500 or fewer.
 
 Pixel coordinates are (x right, y down) of the base image.
 """
