@@ -12,10 +12,10 @@ on them with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point
 (``calcOpticalFlowPyrLK`` with ``minEigThreshold`` 1e-4 and the same termination criteria),
 with the derivatives computed only in the windows of the points (Scharr, as OpenCV) instead of
 over whole images. Its sums are single-precision floats where OpenCV's are partly integers: on
-the KITTI clips the tracked positions equal OpenCV's for most points and differ by 0.0013 px or
-less at the 99th percentile of each kind of pass (more than 0.01 px: 0.5 % or fewer of the new
-corners searched from three levels up, 0.05 % or fewer elsewhere), and the two fail the same
-points but for 1 in 2,500 or fewer.
+the KITTI clips the tracked positions differ from OpenCV's by 1e-4 px or less (median) and
+0.011 px or less at the 99th percentile of each kind of pass (more than 0.01 px: 1.1 % or fewer
+of the new corners searched from three levels up, 0.2 % or fewer elsewhere), and the two fail
+the same points but for 1 in 2,500 or fewer.
 
 Pixel coordinates are (x right, y down) of the base image.
 """
@@ -211,8 +211,8 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
     point then goes back half of it).
     A point fails (``ok`` False, on the base level only) whose window leaves the padded image
     or whose gradient matrix has a smallest eigenvalue below ``min_eig`` (per pixel, in
-    OpenCV's scale) or is singular. The sums of products are exact (integers summed in float64)
-    where OpenCV sums in single precision.
+    OpenCV's scale) or is singular. The sums are single-precision floats, as OpenCV's, in
+    another order.
     """
     n = prev.shape[0]
     wc = ((win + CHUNK - 1) // CHUNK) * CHUNK  # window columns processed
@@ -278,11 +278,9 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 k = numba.uint64(x)
                 grid[g + k] = (raw[f0 + k] * w00 + raw[f0 + k + u1] * w01
                                + raw[f1 + k] * w10 + raw[f1 + k + u1] * w11)
-        # Sums of products of integers in float64: exact, so no summation order (SIMD, the
-        # alignment of the buffers) changes a result.
-        s11 = 0.0
-        s12 = 0.0
-        s22 = 0.0
+        a11 = np.float32(0.0)
+        a12 = np.float32(0.0)
+        a22 = np.float32(0.0)
         if ix >= 0 and iy >= 0 and ix + win < w and iy + win < h:
             # Inside the image: the Scharr derivatives of the sampled window (sampling and
             # differencing are both linear: OpenCV's sampled derivative images).
@@ -293,18 +291,19 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 o = numba.uint64(y * wc)
                 for x in range(wc):
                     k = numba.uint64(x)
-                    patch[o + k] = np.floor(grid[g1 + k + u1] * c32 + rnd)
-                    gx = np.floor(
-                        c3 * (grid[g0 + k + u2] - grid[g0 + k] + grid[g2 + k + u2] - grid[g2 + k])
-                        + c10 * (grid[g1 + k + u2] - grid[g1 + k]) + rnd) * inside[k]
-                    gy = np.floor(
-                        c3 * (grid[g2 + k] - grid[g0 + k] + grid[g2 + k + u2] - grid[g0 + k + u2])
-                        + c10 * (grid[g2 + k + u1] - grid[g0 + k + u1]) + rnd) * inside[k]
+                    patch[o + k] = math.floor(grid[g1 + k + u1] * c32 + rnd)
+                    gx = math.floor(c3 * (grid[g0 + k + u2] - grid[g0 + k] + grid[g2 + k + u2]
+                                          - grid[g2 + k])
+                                    + c10 * (grid[g1 + k + u2] - grid[g1 + k]) + rnd) * inside[k]
+                    gy = math.floor(c3 * (grid[g2 + k] - grid[g0 + k] + grid[g2 + k + u2]
+                                          - grid[g0 + k + u2])
+                                    + c10 * (grid[g2 + k + u1] - grid[g0 + k + u1]) + rnd) \
+                        * inside[k]
                     grad_x[o + k] = gx
                     grad_y[o + k] = gy
-                    s11 += np.float64(gx) * np.float64(gx)
-                    s12 += np.float64(gx) * np.float64(gy)
-                    s22 += np.float64(gy) * np.float64(gy)
+                    a11 += gx * gx
+                    a12 += gx * gy
+                    a22 += gy * gy
         else:
             # The window reaches past the image: as OpenCV, the derivatives are those of the
             # image's pixels (its border reflected) and 0 outside the image, then sampled.
@@ -329,21 +328,21 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 e0 = y * sr
                 e1 = e0 + sr
                 for x in range(wc):
-                    patch[o + x] = np.floor(grid[(y + 1) * sg + x + 1] * c32 + rnd)
-                    gx = np.floor(edge_x[e0 + x] * w00 + edge_x[e0 + x + 1] * w01
-                                  + edge_x[e1 + x] * w10 + edge_x[e1 + x + 1] * w11
-                                  + rnd) * inside[x]
-                    gy = np.floor(edge_y[e0 + x] * w00 + edge_y[e0 + x + 1] * w01
-                                  + edge_y[e1 + x] * w10 + edge_y[e1 + x + 1] * w11
-                                  + rnd) * inside[x]
+                    patch[o + x] = math.floor(grid[(y + 1) * sg + x + 1] * c32 + rnd)
+                    gx = math.floor(edge_x[e0 + x] * w00 + edge_x[e0 + x + 1] * w01
+                                    + edge_x[e1 + x] * w10 + edge_x[e1 + x + 1] * w11 + rnd) \
+                        * inside[x]
+                    gy = math.floor(edge_y[e0 + x] * w00 + edge_y[e0 + x + 1] * w01
+                                    + edge_y[e1 + x] * w10 + edge_y[e1 + x + 1] * w11 + rnd) \
+                        * inside[x]
                     grad_x[o + x] = gx
                     grad_y[o + x] = gy
-                    s11 += np.float64(gx) * np.float64(gx)
-                    s12 += np.float64(gx) * np.float64(gy)
-                    s22 += np.float64(gy) * np.float64(gy)
-        a11 = np.float32(s11) * fixed
-        a12 = np.float32(s12) * fixed
-        a22 = np.float32(s22) * fixed
+                    a11 += gx * gx
+                    a12 += gx * gy
+                    a22 += gy * gy
+        a11 *= fixed
+        a12 *= fixed
+        a22 *= fixed
         det = a11 * a22 - a12 * a12
         disc = (a11 - a22) * (a11 - a22) + np.float32(4) * a12 * a12
         min_eigenvalue = (a22 + a11 - np.float32(math.sqrt(disc))) / np.float32(2 * win * win)
@@ -362,8 +361,8 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 if level == 0:
                     ok[i] = False
                 break
-            t1 = 0.0
-            t2 = 0.0
+            b1 = np.float32(0.0)
+            b2 = np.float32(0.0)
             src = numba.uint64((jy + bj) * sj + jx + bj)
             for y in range(win + 1):
                 dst = numba.uint64((y & 1) * sr)
@@ -376,13 +375,13 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 o = numba.uint64((y - 1) * wc)
                 for x in range(wc):
                     k = numba.uint64(x)
-                    d = np.floor(
-                        (rows[r0 + k] * w00 + rows[r0 + k + u1] * w01 + rows[dst + k] * w10
-                         + rows[dst + k + u1] * w11) * c32 + rnd) - patch[o + k]
-                    t1 += np.float64(d) * np.float64(grad_x[o + k])
-                    t2 += np.float64(d) * np.float64(grad_y[o + k])
-            b1 = np.float32(t1) * fixed
-            b2 = np.float32(t2) * fixed
+                    d = math.floor((rows[r0 + k] * w00 + rows[r0 + k + u1] * w01
+                                    + rows[dst + k] * w10 + rows[dst + k + u1] * w11) * c32
+                                   + rnd) - patch[o + k]
+                    b1 += d * grad_x[o + k]
+                    b2 += d * grad_y[o + k]
+            b1 *= fixed
+            b2 *= fixed
             dx = (a12 * b2 - a22 * b1) * inv_det
             dy = (a12 * b1 - a11 * b2) * inv_det
             nx += dx
