@@ -278,6 +278,9 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 k = numba.uint64(x)
                 grid[g + k] = (raw[f0 + k] * w00 + raw[f0 + k + u1] * w01
                                + raw[f1 + k] * w10 + raw[f1 + k + u1] * w11)
+        # ``math.floor`` gives integers, so the products below and their sums are float64 and
+        # exact: no summation order (SIMD, the alignment of the buffers) changes a result. Sums
+        # in float32 would, and one and two threads would then differ.
         a11 = np.float32(0.0)
         a12 = np.float32(0.0)
         a22 = np.float32(0.0)
