@@ -136,9 +136,10 @@ def main() -> int:
         print('no KITTI clip: timing a rendered urban scene (1241x376, 60 frames) instead')
         clips.append(render(SequenceSpec.preset('urban', n_frames=60), 'urban'))
     for size in args.render:
-        if image_size(size) is None:
+        width_height = image_size(size)
+        if width_height is None:
             raise SystemExit(f'--render wants WxH, got {size!r}')
-        width, height = image_size(size)
+        width, height = width_height
         clips.append(render_urban(width, height, f'urban{width}x{height}'))
     print(f'{len(clips)} clip(s): ' + ', '.join(
         f'{c.name} ({len(c.frames)} pairs, {c.size[0]}x{c.size[1]})' for c in clips))

@@ -11,11 +11,11 @@ a reflected border as OpenCV builds them) and ``track`` runs Bouguet's pyramidal
 on them with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point
 (``calcOpticalFlowPyrLK`` with ``minEigThreshold`` 1e-4 and the same termination criteria),
 with the derivatives computed only in the windows of the points (Scharr, as OpenCV) instead of
-over whole images. Its sums are single-precision floats where OpenCV's are partly integers: on
-the KITTI clips the tracked positions differ from OpenCV's by 1e-4 px or less (median) and
-0.011 px or less at the 99th percentile of each kind of pass (more than 0.01 px: 1.1 % or fewer
-of the new corners searched from three levels up, 0.2 % or fewer elsewhere), and the two fail
-the same points but for 1 in 2,500 or fewer.
+over whole images. Its sums of integer products are exact (float64) where OpenCV's are
+single-precision floats: on the KITTI clips the tracked positions differ from OpenCV's by 1e-4
+px or less (median) and 0.011 px or less at the 99th percentile of each kind of pass (more than
+0.01 px: 1.1 % or fewer of the new corners searched from three levels up, 0.2 % or fewer
+elsewhere), and the two fail the same points but for 1 in 2,500 or fewer.
 
 Pixel coordinates are (x right, y down) of the base image.
 """
@@ -211,8 +211,8 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
     point then goes back half of it).
     A point fails (``ok`` False, on the base level only) whose window leaves the padded image
     or whose gradient matrix has a smallest eigenvalue below ``min_eig`` (per pixel, in
-    OpenCV's scale) or is singular. The sums are single-precision floats, as OpenCV's, in
-    another order.
+    OpenCV's scale) or is singular. The sums of integer products are float64 and exact, where
+    OpenCV's are single-precision floats: no summation order changes a result.
     """
     n = prev.shape[0]
     wc = ((win + CHUNK - 1) // CHUNK) * CHUNK  # window columns processed
