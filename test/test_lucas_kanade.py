@@ -32,31 +32,32 @@ def shifted(img, dx, dy):
                           borderMode=cv2.BORDER_REFLECT_101)
 
 
-def opencv(img0, img1, pts, guess, levels):
+def opencv(img0, img1, pts, guess, levels, win=WIN):
     """``cv2.calcOpticalFlowPyrLK`` with the tracker's settings: (N, 2) positions, (N,) status."""
     p = pts.astype(np.float32).reshape(-1, 1, 2)
     if guess is None:
-        out, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p, None, winSize=(WIN, WIN),
+        out, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p, None, winSize=(win, win),
                                               maxLevel=levels, criteria=CRITERIA)
     else:
         out, st, _ = cv2.calcOpticalFlowPyrLK(
             img0, img1, p, guess.astype(np.float32).reshape(-1, 1, 2).copy(),
-            winSize=(WIN, WIN), maxLevel=levels, criteria=CRITERIA,
+            winSize=(win, win), maxLevel=levels, criteria=CRITERIA,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     return out.reshape(-1, 2), st.ravel().astype(bool)
 
 
 @pytest.mark.parametrize('levels', [0, 1, 3])
 @pytest.mark.parametrize('with_guess', [False, True])
-def test_tracks_like_opencv_and_finds_the_true_shift(levels, with_guess):
+@pytest.mark.parametrize('win', [WIN, 21])  # one and two chunks of window columns
+def test_tracks_like_opencv_and_finds_the_true_shift(levels, with_guess, win):
     img0 = textured()
     shift = np.array([3.0, -2.0]) * (4 if levels == 3 else 1)  # whole pixels: an exact warp
     img1 = shifted(img0, *shift)
     pts = cv2.goodFeaturesToTrack(img0, 150, 0.01, 10).reshape(-1, 2)
     guess = pts + shift + 0.8 if with_guess else None
-    ours, ok = track(ImagePyramid(img0, WIN), ImagePyramid(img1, WIN), pts, guess, levels, WIN,
+    ours, ok = track(ImagePyramid(img0, win), ImagePyramid(img1, win), pts, guess, levels, win,
                      30, KLT_EPSILON_PX)
-    ref, ref_ok = opencv(img0, img1, pts, guess, levels)
+    ref, ref_ok = opencv(img0, img1, pts, guess, levels, win)
     assert ours.dtype == np.float32 and ours.shape == pts.shape
     both = ok & ref_ok
     assert both.sum() > 0.8 * len(pts)
@@ -76,10 +77,10 @@ def test_windows_past_the_border_read_it_as_opencv_does():
     img1 = shifted(img0, 1.4, 0.6)
     ys, xs = np.meshgrid(np.linspace(2, 237, 12), [1.5, 4.2, 7.0, 312.3, 317.8])
     pts = np.column_stack([xs.ravel(), ys.ravel()])
-    for levels in (0, 2):
-        ours, ok = track(ImagePyramid(img0, WIN), ImagePyramid(img1, WIN), pts, None, levels,
-                         WIN, 30, KLT_EPSILON_PX)
-        ref, ref_ok = opencv(img0, img1, pts, None, levels)
+    for levels, win in ((0, WIN), (2, WIN), (0, 21)):
+        ours, ok = track(ImagePyramid(img0, win), ImagePyramid(img1, win), pts, None, levels,
+                         win, 30, KLT_EPSILON_PX)
+        ref, ref_ok = opencv(img0, img1, pts, None, levels, win)
         assert np.array_equal(ok, ref_ok)
         gap = np.linalg.norm(ours[ok] - ref[ok], axis=1)
         assert np.percentile(gap, 90) < 1e-3

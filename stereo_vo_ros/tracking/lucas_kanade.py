@@ -228,11 +228,13 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
     raw = np.empty((win + 3) * sf, np.float32)
     grid = np.empty((win + 2) * sg, np.float32)
     patch = np.zeros(win * wc, np.float32)  # grey levels times 32, rounded
-    grad_x = np.zeros(win * wc, np.float32)  # Scharr derivatives (32 times grey levels per
-    grad_y = np.zeros(win * wc, np.float32)  # pixel), rounded
+    grad_x = np.zeros(win * wc, np.float64)  # Scharr derivatives (32 times grey levels per
+    grad_y = np.zeros(win * wc, np.float64)  # pixel), rounded
+    chunks = wc // CHUNK
+    lane_1 = np.zeros(CHUNK, np.float64)  # the sums of an iteration per column of a chunk
+    lane_2 = np.zeros(CHUNK, np.float64)
     inside = np.zeros(wc, np.float32)  # 1 on the window's columns, 0 on the padding columns
     inside[:win] = 1
-    rows = np.empty(2 * sr, np.float32)
     edge_x = np.empty((win + 1) * sr, np.float32)  # derivatives at pixels, windows at the border
     edge_y = np.empty((win + 1) * sr, np.float32)
     fixed = np.float32(1.0 / (1 << 20))  # OpenCV's scale of the sums
@@ -278,9 +280,10 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 k = numba.uint64(x)
                 grid[g + k] = (raw[f0 + k] * w00 + raw[f0 + k + u1] * w01
                                + raw[f1 + k] * w10 + raw[f1 + k + u1] * w11)
-        # ``math.floor`` gives integers, so the products below and their sums are float64 and
-        # exact: no summation order (SIMD, the alignment of the buffers) changes a result. Sums
-        # in float32 would, and one and two threads would then differ.
+        # The rounded values are integers (``np.floor`` of float32 keeps float32, exact below
+        # 2**24); their products and sums are float64 and exact, so no summation order (SIMD,
+        # per-column partial sums, the alignment of the buffers) changes a result. Sums in
+        # float32 would, and one and two threads would then differ.
         a11 = np.float32(0.0)
         a12 = np.float32(0.0)
         a22 = np.float32(0.0)
@@ -294,14 +297,13 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 o = numba.uint64(y * wc)
                 for x in range(wc):
                     k = numba.uint64(x)
-                    patch[o + k] = math.floor(grid[g1 + k + u1] * c32 + rnd)
-                    gx = math.floor(c3 * (grid[g0 + k + u2] - grid[g0 + k] + grid[g2 + k + u2]
-                                          - grid[g2 + k])
-                                    + c10 * (grid[g1 + k + u2] - grid[g1 + k]) + rnd) * inside[k]
-                    gy = math.floor(c3 * (grid[g2 + k] - grid[g0 + k] + grid[g2 + k + u2]
-                                          - grid[g0 + k + u2])
-                                    + c10 * (grid[g2 + k + u1] - grid[g0 + k + u1]) + rnd) \
-                        * inside[k]
+                    patch[o + k] = np.floor(grid[g1 + k + u1] * c32 + rnd)
+                    gx = np.float64(np.floor(
+                        c3 * (grid[g0 + k + u2] - grid[g0 + k] + grid[g2 + k + u2] - grid[g2 + k])
+                        + c10 * (grid[g1 + k + u2] - grid[g1 + k]) + rnd) * inside[k])
+                    gy = np.float64(np.floor(
+                        c3 * (grid[g2 + k] - grid[g0 + k] + grid[g2 + k + u2] - grid[g0 + k + u2])
+                        + c10 * (grid[g2 + k + u1] - grid[g0 + k + u1]) + rnd) * inside[k])
                     grad_x[o + k] = gx
                     grad_y[o + k] = gy
                     a11 += gx * gx
@@ -364,25 +366,27 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 if level == 0:
                     ok[i] = False
                 break
-            b1 = np.float32(0.0)
-            b2 = np.float32(0.0)
-            src = numba.uint64((jy + bj) * sj + jx + bj)
-            for y in range(win + 1):
-                dst = numba.uint64((y & 1) * sr)
-                for x in range(sr):
-                    rows[dst + numba.uint64(x)] = np.float32(flat_j[src + numba.uint64(x)])
-                src += numba.uint64(sj)
-                if y == 0:
-                    continue
-                r0 = numba.uint64(((y - 1) & 1) * sr)
-                o = numba.uint64((y - 1) * wc)
-                for x in range(wc):
-                    k = numba.uint64(x)
-                    d = math.floor((rows[r0 + k] * w00 + rows[r0 + k + u1] * w01
-                                    + rows[dst + k] * w10 + rows[dst + k + u1] * w11) * c32
-                                   + rnd) - patch[o + k]
-                    b1 += d * grad_x[o + k]
-                    b2 += d * grad_y[o + k]
+            # The target window sampled from the image's bytes, a chunk of columns at a time
+            # (a fixed width the compiler vectorizes), the sums kept per column.
+            lane_1[:] = 0.0
+            lane_2[:] = 0.0
+            for y in range(win):
+                r0 = numba.uint64((jy + bj + y) * sj + jx + bj)
+                for c in range(chunks):
+                    o = numba.uint64(y * wc + c * CHUNK)
+                    q0 = r0 + numba.uint64(c * CHUNK)
+                    q1 = q0 + numba.uint64(sj)
+                    for x in range(CHUNK):
+                        k = numba.uint64(x)
+                        v = (np.float32(flat_j[q0 + k]) * w00
+                             + np.float32(flat_j[q0 + k + u1]) * w01
+                             + np.float32(flat_j[q1 + k]) * w10
+                             + np.float32(flat_j[q1 + k + u1]) * w11)
+                        d = np.float64(np.floor(v * c32 + rnd) - patch[o + k])
+                        lane_1[x] += d * grad_x[o + k]
+                        lane_2[x] += d * grad_y[o + k]
+            b1 = lane_1.sum()
+            b2 = lane_2.sum()
             b1 *= fixed
             b2 *= fixed
             dx = (a12 * b2 - a22 * b1) * inv_det
