@@ -9,7 +9,7 @@ import pytest
 from stereo_vo_ros.estimation.camera import StereoCalibration
 from stereo_vo_ros.tracking import tracker as tracker_module
 from stereo_vo_ros.tracking.klt_checks import KLT_EPSILON_PX, lk_pass
-from stereo_vo_ros.tracking.lucas_kanade import border_px, ImagePyramid, track
+from stereo_vo_ros.tracking.lucas_kanade import ImagePyramid, track
 
 WIN = 13
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, KLT_EPSILON_PX)
@@ -55,7 +55,7 @@ def test_tracks_like_opencv_and_finds_the_true_shift(levels, with_guess, win):
     img1 = shifted(img0, *shift)
     pts = cv2.goodFeaturesToTrack(img0, 150, 0.01, 10).reshape(-1, 2)
     guess = pts + shift + 0.8 if with_guess else None
-    ours, ok = track(ImagePyramid(img0, win), ImagePyramid(img1, win), pts, guess, levels, win,
+    ours, ok = track(ImagePyramid(img0), ImagePyramid(img1), pts, guess, levels, win,
                      30, KLT_EPSILON_PX)
     ref, ref_ok = opencv(img0, img1, pts, guess, levels, win)
     assert ours.dtype == np.float32 and ours.shape == pts.shape
@@ -78,55 +78,61 @@ def test_windows_past_the_border_read_it_as_opencv_does():
     ys, xs = np.meshgrid(np.linspace(2, 237, 12), [1.5, 4.2, 7.0, 312.3, 317.8])
     pts = np.column_stack([xs.ravel(), ys.ravel()])
     for levels, win in ((0, WIN), (2, WIN), (0, 21)):
-        ours, ok = track(ImagePyramid(img0, win), ImagePyramid(img1, win), pts, None, levels,
-                         win, 30, KLT_EPSILON_PX)
+        ours, ok = track(ImagePyramid(img0), ImagePyramid(img1), pts, None, levels, win, 30,
+                         KLT_EPSILON_PX)
         ref, ref_ok = opencv(img0, img1, pts, None, levels, win)
         assert np.array_equal(ok, ref_ok)
         gap = np.linalg.norm(ours[ok] - ref[ok], axis=1)
         assert np.percentile(gap, 90) < 1e-3
+    # Images smaller than the window: reads reflected more than once, as OpenCV pads them.
+    small0, small1 = textured((9, 14), seed=2), textured((9, 14), seed=2)[:, ::-1].copy()
+    grid = np.mgrid[-3:17:2.5, -3:12:2.5].reshape(2, -1).T
+    ours, ok = track(ImagePyramid(small0), ImagePyramid(small1), grid, None, 0, WIN, 30,
+                     KLT_EPSILON_PX)
+    ref, ref_ok = opencv(small0, small1, grid, None, 0)
+    assert np.array_equal(ok, ref_ok) and ok.sum() > 10
+    assert np.percentile(np.linalg.norm(ours[ok] - ref[ok], axis=1), 90) < 1e-3
 
 
 def test_pyramid_levels_and_their_limit_follow_opencv():
     img = textured((50, 200))
-    pyr = ImagePyramid(img, WIN)
-    b = border_px(WIN)
-    assert b >= WIN + 3 and pyr.border == b
+    pyr = ImagePyramid(img)
     level = img
     for k in range(3):
         assert pyr.size(k) == level.shape[::-1]
-        np.testing.assert_array_equal(pyr.padded(k)[b:-b, b:-b], level)
-        np.testing.assert_array_equal(
-            pyr.padded(k), cv2.copyMakeBorder(level, b, b, b, b, cv2.BORDER_REFLECT_101))
+        np.testing.assert_array_equal(pyr.level(k), level)
+        assert not pyr.level(k).flags.writeable
         level = cv2.pyrDown(level)
-    assert not pyr.padded(0).flags.writeable
+    # Level 0 is the image itself (not a copy), which stays writable.
+    assert np.shares_memory(pyr.level(0), img) and img.flags.writeable
     # OpenCV stops where a level would not be larger than the window (50 -> 25 -> 13 rows).
     for asked in range(5):
         top, _ = cv2.buildOpticalFlowPyramid(img, (WIN, WIN), asked)
         assert pyr.usable_levels(asked, WIN) == top
     with pytest.raises(ValueError):
-        ImagePyramid(img.astype(np.float32), WIN)
+        ImagePyramid(img.astype(np.float32))
 
 
 def test_bad_points_fail_and_bad_pyramids_raise():
     img = textured()
-    pyr = ImagePyramid(img, WIN)
+    pyr = ImagePyramid(img)
     pts = np.array([[100.0, 100.0], [np.nan, 50.0], [-500.0, 10.0], [160.0, 120.0]])
     out, ok = track(pyr, pyr, pts, None, 2, WIN, 30, KLT_EPSILON_PX)
     assert ok.tolist() == [True, False, False, True]
     np.testing.assert_allclose(out[ok], pts[ok], atol=1e-3)  # the same image: no motion
     out, ok = track(pyr, pyr, np.zeros((0, 2)), None, 2, WIN, 30, KLT_EPSILON_PX)
     assert out.shape == (0, 2) and ok.shape == (0,)
-    flat = ImagePyramid(np.full((240, 320), 90, np.uint8), WIN)
+    flat = ImagePyramid(np.full((240, 320), 90, np.uint8))
     _, ok = track(flat, flat, pts[:1], None, 0, WIN, 30, KLT_EPSILON_PX)
     assert not ok[0]  # no texture: the gradient matrix is singular
     with pytest.raises(ValueError):
-        track(pyr, ImagePyramid(img[:200], WIN), pts, None, 0, WIN, 30, KLT_EPSILON_PX)
+        track(pyr, ImagePyramid(img[:200]), pts, None, 0, WIN, 30, KLT_EPSILON_PX)
     with pytest.raises(ValueError):
-        track(pyr, pyr, pts, None, 0, 41, 30, KLT_EPSILON_PX)  # borders made for 13 px
+        track(pyr, pyr, pts, None, 0, 0, 30, KLT_EPSILON_PX)  # no window
     # lk_pass takes images or pyramids alike.
     img1 = shifted(img, 2.0, 1.0)
     a = lk_pass(img, img1, pts[[0, 3]], None, 1, WIN, 30)
-    b = lk_pass(pyr, ImagePyramid(img1, WIN), pts[[0, 3]], None, 1, WIN, 30)
+    b = lk_pass(pyr, ImagePyramid(img1), pts[[0, 3]], None, 1, WIN, 30)
     np.testing.assert_array_equal(a[0], b[0])
     np.testing.assert_array_equal(a[1], b[1])
 
@@ -136,8 +142,8 @@ def test_tracker_builds_each_images_pyramid_once(monkeypatch):
     built = []
 
     class Counted(ImagePyramid):
-        def __init__(self, image, win_size_px):
-            super().__init__(image, win_size_px)
+        def __init__(self, image):
+            super().__init__(image)
             built.append(image)
 
     monkeypatch.setattr(tracker_module, 'ImagePyramid', Counted)

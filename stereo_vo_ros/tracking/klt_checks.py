@@ -134,7 +134,7 @@ def lk_pass(img_from: np.ndarray | ImagePyramid, img_to: np.ndarray | ImagePyram
     if n == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     win = int(win_size_px)
-    pyr_from, pyr_to = (p if isinstance(p, ImagePyramid) else ImagePyramid(p, win)
+    pyr_from, pyr_to = (p if isinstance(p, ImagePyramid) else ImagePyramid(p)
                         for p in (img_from, img_to))
     init = None
     if guess is not None:

@@ -6,8 +6,9 @@ of the temporal pass, the source of the forward-backward and stereo passes, and 
 the next pair's temporal pass. ``cv2.calcOpticalFlowPyrLK`` rebuilds the pyramid and the Scharr
 derivative images of the whole image at every call (40-60 % of a pass of 120-200 points at
 1241x376), and OpenCV's Python binding does not accept a prebuilt pyramid. Here an
-``ImagePyramid`` holds the padded levels of one image (built on first use, ``cv2.pyrDown`` and
-a reflected border as OpenCV builds them) and ``track`` runs Bouguet's pyramidal Lucas-Kanade
+``ImagePyramid`` holds the levels of one image (built on first use with ``cv2.pyrDown``, as
+OpenCV builds them; no padded copies: a window that reaches past a level reads its reflection,
+as OpenCV's padded levels hold it) and ``track`` runs Bouguet's pyramidal Lucas-Kanade
 on them with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point
 (``calcOpticalFlowPyrLK`` with ``minEigThreshold`` 1e-4 and the same termination criteria),
 with the derivatives computed only in the windows of the points (Scharr, as OpenCV) instead of
@@ -39,37 +40,30 @@ WEIGHT_BITS = 14
 MIN_EIGENVALUE = 1e-4
 
 
-def border_px(win_size_px: int) -> int:
-    """Border (pixels) the padded levels need for windows of ``win_size_px``."""
-    return -(-int(win_size_px) // CHUNK) * CHUNK + 4
-
-
 class ImagePyramid:
     """
-    The Gaussian pyramid of one grey image, levels built on first use, with padded borders.
+    The Gaussian pyramid of one grey image, levels built on first use.
 
-    Level 0 is the image; level k + 1 is ``cv2.pyrDown`` of level k. Each level is kept padded
-    by ``border_px(win_size_px)`` pixels of reflected border (``BORDER_REFLECT_101``, as
-    OpenCV pads its KLT pyramids), so a window that reaches past the image reads the image's
-    reflection. Levels are built on first use without a lock: one thread at a time.
+    Level 0 is the image; level k + 1 is ``cv2.pyrDown`` of level k, as OpenCV builds its KLT
+    pyramids. Windows that reach past a level read its reflection (``BORDER_REFLECT_101``, as
+    OpenCV pads its levels) without a padded copy. Levels are built on first use without a
+    lock: one thread at a time.
 
     Parameters
     ----------
     image : np.ndarray
         (H, W) uint8 grey image (kept by reference; not to be modified while in use).
-    win_size_px : int
-        Largest KLT window side (pixels) the pyramid serves.
 
     """
 
-    def __init__(self, image: np.ndarray, win_size_px: int) -> None:
+    def __init__(self, image: np.ndarray) -> None:
         if image.ndim != 2 or image.dtype != np.uint8:
             raise ValueError(f'ImagePyramid needs an (H, W) uint8 image, got {image.dtype} '
                              f'{image.shape}')
         self.image = image
-        self.border = border_px(win_size_px)
-        self._levels = [np.ascontiguousarray(image)]
-        self._padded: list[np.ndarray] = []
+        level = np.ascontiguousarray(image).view()  # read-only; the image itself stays as is
+        level.flags.writeable = False
+        self._levels = [level]
 
     def size(self, level: int) -> tuple[int, int]:
         """Return (width, height) of a level (pixels), without building it."""
@@ -78,17 +72,13 @@ class ImagePyramid:
             w, h = (w + 1) // 2, (h + 1) // 2
         return w, h
 
-    def padded(self, level: int) -> np.ndarray:
-        """Return a level with its border ((h + 2 b, w + 2 b) uint8, read-only)."""
+    def level(self, level: int) -> np.ndarray:
+        """Return level ``level`` ((h, w) uint8, C-contiguous, read-only), built if need be."""
         while len(self._levels) <= level:
-            self._levels.append(cv2.pyrDown(self._levels[-1]))
-        while len(self._padded) <= level:
-            b = self.border
-            out = cv2.copyMakeBorder(self._levels[len(self._padded)], b, b, b, b,
-                                     cv2.BORDER_REFLECT_101)
+            out = cv2.pyrDown(self._levels[-1])
             out.flags.writeable = False
-            self._padded.append(out)
-        return self._padded[level]
+            self._levels.append(out)
+        return self._levels[level]
 
     def usable_levels(self, levels: int, win_size_px: int) -> int:
         """
@@ -141,8 +131,8 @@ def track(src: ImagePyramid, dst: ImagePyramid, pts: np.ndarray, guess: np.ndarr
     if src.image.shape != dst.image.shape:
         raise ValueError(f'KLT images differ in size: {src.image.shape} vs {dst.image.shape}')
     win = int(win_size_px)
-    if src.border < border_px(win) or dst.border < border_px(win):
-        raise ValueError(f'pyramid borders are too narrow for a {win}-pixel window')
+    if win < 1:
+        raise ValueError(f'KLT window of {win} pixels')
     n = len(pts)
     prev = np.ascontiguousarray(pts, np.float32).reshape(n, 2)
     ok = np.all(np.isfinite(prev), axis=1)
@@ -151,17 +141,16 @@ def track(src: ImagePyramid, dst: ImagePyramid, pts: np.ndarray, guess: np.ndarr
     else:
         nxt = np.array(guess, np.float32).reshape(n, 2)
         ok &= np.all(np.isfinite(nxt), axis=1)
-    if not n:
-        return nxt, ok
+    if not n or not src.image.size:
+        return nxt, ok & (src.image.size > 0)
     # OpenCV's limits of the termination criteria.
     iterations = min(max(int(max_iterations), 0), 100)
     epsilon = min(max(float(epsilon_px), 0.0), 10.0)
     top = src.usable_levels(int(levels), win)
     for level in range(top, -1, -1):
-        w, h = src.size(level)
-        _track_level(src.padded(level), dst.padded(level), src.border, dst.border, h, w, prev,
-                     nxt, ok, level, level == top, guess is not None, win, iterations,
-                     np.float32(epsilon * epsilon), MIN_EIGENVALUE)
+        _track_level(src.level(level), dst.level(level), prev, nxt, ok, level, level == top,
+                     guess is not None, win, iterations, np.float32(epsilon * epsilon),
+                     MIN_EIGENVALUE)
     return nxt, ok
 
 
@@ -188,38 +177,83 @@ def _bilinear(x, y):
     return ix, iy, w00 * inv, w01 * inv, w10 * inv, w11 * inv
 
 
+@kernel()
+def _reflect(p, n):
+    """Return pixel index ``p`` of a row or column of ``n`` (>= 1) as OpenCV's reflect-101."""
+    if n == 1:
+        return 0
+    while p < 0 or p >= n:
+        p = -p if p < 0 else 2 * n - 2 - p
+    return p
+
+
+@kernel()
+def _target_sums(img, base, stride, win, chunks, w00, w01, w10, w11, patch, grad_x, grad_y,
+                 lane_1, lane_2):
+    """
+    Return one iteration's sums: the mismatch times each derivative, over the window.
+
+    The target window is sampled from the bytes of ``img`` (a flat uint8 image or window, its
+    top left pixel at ``base``, rows ``stride`` apart) with the bilinear weights ``w00`` ..
+    ``w11``, a chunk of columns at a time (a fixed width the compiler vectorizes), times 32
+    and rounded; ``patch``, ``grad_x``, ``grad_y`` hold the source window's values and
+    derivatives (``win`` rows of ``chunks * CHUNK``); ``lane_1``, ``lane_2`` (CHUNK) are
+    scratch for the per-column sums.
+    """
+    c32 = np.float32(32)
+    rnd = np.float32(0.5)
+    u1 = numba.uint64(1)
+    wc = chunks * CHUNK
+    lane_1[:] = 0.0
+    lane_2[:] = 0.0
+    for y in range(win):
+        r0 = numba.uint64(base + y * stride)
+        for c in range(chunks):
+            o = numba.uint64(y * wc + c * CHUNK)
+            q0 = r0 + numba.uint64(c * CHUNK)
+            q1 = q0 + numba.uint64(stride)
+            for x in range(CHUNK):
+                k = numba.uint64(x)
+                v = (np.float32(img[q0 + k]) * w00 + np.float32(img[q0 + k + u1]) * w01
+                     + np.float32(img[q1 + k]) * w10 + np.float32(img[q1 + k + u1]) * w11)
+                d = np.float64(np.floor(v * c32 + rnd) - patch[o + k])
+                lane_1[x] += d * grad_x[o + k]
+                lane_2[x] += d * grad_y[o + k]
+    return lane_1.sum(), lane_2.sum()
+
+
 _u8 = readonly(numba.types.uint8, 2)
 _i64, _f32, _b1 = numba.types.int64, numba.types.float32, numba.types.boolean
 
 
 @kernel([numba.types.void(
-    _u8, _u8, _i64, _i64, _i64, _i64, readonly(_f32, 2), numba.types.Array(_f32, 2, 'C'),
-    numba.types.Array(_b1, 1, 'C'), _i64, _b1, _b1, _i64, _i64, _f32, numba.types.float64)])
-def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_guess, win,
-                 max_iter, eps2, min_eig):
+    _u8, _u8, readonly(_f32, 2), numba.types.Array(_f32, 2, 'C'), numba.types.Array(_b1, 1, 'C'),
+    _i64, _b1, _b1, _i64, _i64, _f32, numba.types.float64)])
+def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_iter, eps2,
+                 min_eig):
     """
     One pyramid level of Lucas-Kanade for every point still ``ok``, in place in ``nxt``.
 
-    ``img_i``, ``img_j``: the level of the source and target image with borders ``bi``, ``bj``
-    (pixels); (``h``, ``w``) the level's size. ``prev`` holds base-level source positions;
-    ``nxt`` the base-level guesses at the top level (``use_guess``), else the previous level's
-    result at its scale; it is left at this level's scale. As OpenCV, with its fixed-point
-    weights and roundings: the window's grey levels (times 32) and Scharr derivatives are
-    sampled bilinearly at the source point and rounded to integers; each iteration moves the
-    point by the solution of the 2x2 normal equations; a level stops after ``max_iter``
-    iterations, a step shorter than sqrt(``eps2``), or a step that undoes the last one (the
-    point then goes back half of it).
-    A point fails (``ok`` False, on the base level only) whose window leaves the padded image
-    or whose gradient matrix has a smallest eigenvalue below ``min_eig`` (per pixel, in
-    OpenCV's scale) or is singular. The sums of integer products are float64 and exact, where
-    OpenCV's are single-precision floats: no summation order changes a result.
+    ``img_i``, ``img_j``: the level of the source and target image (the same size; windows
+    that reach past it read its reflection, as OpenCV's padded levels). ``prev`` holds
+    base-level source positions; ``nxt`` the base-level guesses at the top level
+    (``use_guess``), else the previous level's result at its scale; it is left at this level's
+    scale. As OpenCV, with its fixed-point weights and roundings: the window's grey levels
+    (times 32) and Scharr derivatives are sampled bilinearly at the source point and rounded to
+    integers; each iteration moves the point by the solution of the 2x2 normal equations; a
+    level stops after ``max_iter`` iterations, a step shorter than sqrt(``eps2``), or a step
+    that undoes the last one (the point then goes back half of it).
+    A point fails (``ok`` False, on the base level only) whose window lies a window or more
+    past the image (OpenCV's limit) or whose gradient matrix has a smallest eigenvalue below
+    ``min_eig`` (per pixel, in OpenCV's scale) or is singular. The sums of integer products are
+    float64 and exact, where OpenCV's are single-precision floats: no summation order changes a
+    result.
     """
     n = prev.shape[0]
     wc = ((win + CHUNK - 1) // CHUNK) * CHUNK  # window columns processed
     half = np.float32((win - 1) * 0.5)
     scale = np.float32(1.0 / (1 << level))
-    si = img_i.shape[1]
-    sj = img_j.shape[1]
+    h, w = img_i.shape
     flat_i = img_i.ravel()
     flat_j = img_j.ravel()
     sf = wc + 3  # source pixels around the window (one more on each side for the derivatives)
@@ -237,6 +271,7 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
     inside[:win] = 1
     edge_x = np.empty((win + 1) * sr, np.float32)  # derivatives at pixels, windows at the border
     edge_y = np.empty((win + 1) * sr, np.float32)
+    target = np.empty((win + 1) * sr, np.uint8)  # the target window, reflected at the border
     fixed = np.float32(1.0 / (1 << 20))  # OpenCV's scale of the sums
     c3 = np.float32(3)
     c10 = np.float32(10)
@@ -267,11 +302,19 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
             if level == 0:
                 ok[i] = False
             continue
-        for y in range(win + 3):
-            src = numba.uint64((iy - 1 + y + bi) * si + ix - 1 + bi)
-            dst = numba.uint64(y * sf)
-            for x in range(sf):
-                raw[dst + numba.uint64(x)] = np.float32(flat_i[src + numba.uint64(x)])
+        x0 = ix - 1  # the source pixels read: x0 .. x0 + sf - 1, y0 .. y0 + win + 2
+        y0 = iy - 1
+        if x0 >= 0 and y0 >= 0 and x0 + sf <= w and y0 + win + 3 <= h:
+            for y in range(win + 3):
+                src = numba.uint64((y0 + y) * w + x0)
+                dst = numba.uint64(y * sf)
+                for x in range(sf):
+                    raw[dst + numba.uint64(x)] = np.float32(flat_i[src + numba.uint64(x)])
+        else:
+            for y in range(win + 3):
+                row = _reflect(y0 + y, h) * w
+                for x in range(sf):
+                    raw[y * sf + x] = np.float32(flat_i[row + _reflect(x0 + x, w)])
         for y in range(win + 2):
             f0 = numba.uint64(y * sf)
             f1 = f0 + numba.uint64(sf)
@@ -366,27 +409,16 @@ def _track_level(img_i, img_j, bi, bj, h, w, prev, nxt, ok, level, top, use_gues
                 if level == 0:
                     ok[i] = False
                 break
-            # The target window sampled from the image's bytes, a chunk of columns at a time
-            # (a fixed width the compiler vectorizes), the sums kept per column.
-            lane_1[:] = 0.0
-            lane_2[:] = 0.0
-            for y in range(win):
-                r0 = numba.uint64((jy + bj + y) * sj + jx + bj)
-                for c in range(chunks):
-                    o = numba.uint64(y * wc + c * CHUNK)
-                    q0 = r0 + numba.uint64(c * CHUNK)
-                    q1 = q0 + numba.uint64(sj)
-                    for x in range(CHUNK):
-                        k = numba.uint64(x)
-                        v = (np.float32(flat_j[q0 + k]) * w00
-                             + np.float32(flat_j[q0 + k + u1]) * w01
-                             + np.float32(flat_j[q1 + k]) * w10
-                             + np.float32(flat_j[q1 + k + u1]) * w11)
-                        d = np.float64(np.floor(v * c32 + rnd) - patch[o + k])
-                        lane_1[x] += d * grad_x[o + k]
-                        lane_2[x] += d * grad_y[o + k]
-            b1 = lane_1.sum()
-            b2 = lane_2.sum()
+            if jx >= 0 and jy >= 0 and jx + sr <= w and jy + win + 1 <= h:
+                b1, b2 = _target_sums(flat_j, jy * w + jx, w, win, chunks, w00, w01, w10, w11,
+                                      patch, grad_x, grad_y, lane_1, lane_2)
+            else:
+                for y in range(win + 1):
+                    row = _reflect(jy + y, h) * w
+                    for x in range(sr):
+                        target[y * sr + x] = flat_j[row + _reflect(jx + x, w)]
+                b1, b2 = _target_sums(target, 0, sr, win, chunks, w00, w01, w10, w11, patch,
+                                      grad_x, grad_y, lane_1, lane_2)
             b1 *= fixed
             b2 *= fixed
             dx = (a12 * b2 - a22 * b1) * inv_det

@@ -201,7 +201,7 @@ def replenish(left: np.ndarray, right: np.ndarray, right_matched: np.ndarray,
     ok = np.zeros(len(pts), bool)
     points['new_stereo_fwd'] = len(pts)
     # Both passes, and both groups of the forward pass, use one pyramid of each image.
-    pyr_left, pyr_right = ImagePyramid(left, win), ImagePyramid(right_matched, win)
+    pyr_left, pyr_right = ImagePyramid(left), ImagePyramid(right_matched)
     for sel, levels in ((guided, cfg.stereo_pyramid_levels),
                         (~guided, cfg.pyramid_levels)):
         if sel.any():

@@ -47,7 +47,7 @@ from .features import as_grey_u8, empty_correspondences, FeatureSet
 from .klt_checks import (aperture_checks, bicircular_error, BICIRCULAR_MODES, CheckSet,
                          disparity_constraint, disparity_in_range, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
-from .lucas_kanade import border_px, ImagePyramid
+from .lucas_kanade import ImagePyramid
 from .photometric import PhotometricMatcher
 from .replenish import ExpectedFlow, NewCorners, replenish, ReplenishJob
 from .stats import (CHECKS, PASSES, PendingTrack, STAGES, TrackerStats,  # noqa: F401
@@ -599,11 +599,10 @@ class StereoTracker:
         Images are told apart by identity: the pair's images, the last pair's, and the
         brightness-mapped ones (``_matched``), which are new arrays.
         """
-        win = self.cfg.win_size_px
         for pyr in self._pyramids:
-            if pyr.image is img and pyr.border >= border_px(win):
+            if pyr.image is img:
                 return pyr
-        pyr = ImagePyramid(img, win)
+        pyr = ImagePyramid(img)
         self._pyramids.append(pyr)
         return pyr
 
