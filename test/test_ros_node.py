@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
 from ros_harness import composed_node, domain_id, Harness, NODE_START_S
@@ -35,7 +36,7 @@ from stereo_vo_ros.evaluation.metrics import end_point_drift
 from stereo_vo_ros.io.rosbag import RosbagSequence, write_stereo_bag
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.ros import conversions as conv
-from stereo_vo_ros.ros.node import StereoVONode
+from stereo_vo_ros.ros.node import MAX_SPIN_FAILURES, spin, StereoVONode
 from stereo_vo_ros.ros.player import BagPlayer
 from stereo_vo_ros.ros.process import node_process as node_subprocess, with_pythonpath
 from stereo_vo_ros.synthetic import render_sequence, SequenceSpec
@@ -525,3 +526,51 @@ def test_launch_file_compiles(tmp_path):
     launch = REPO_ROOT / 'launch' / 'stereo_vo.launch.py'
     py_compile.compile(str(launch), cfile=str(tmp_path / 'launch.pyc'), doraise=True)
     assert 'def generate_launch_description' in launch.read_text()
+
+
+def test_spin_survives_failed_turns_and_gives_up_when_every_turn_fails():
+    """A turn of the executor that raises (as rclpy's take under load) is reported, not fatal."""
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    try:
+        node = rclpy.create_node('spin_failures', context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        calls, reported = [], []
+
+        def sometimes_fails():
+            calls.append(1)
+            if len(calls) in (2, 3, 5):
+                raise RuntimeError('Unable to convert call argument to Python object')
+            if len(calls) == 8:
+                context.shutdown()
+
+        node.create_timer(0.001, sometimes_fails)
+        spin(executor, reported.append)  # returns once the context shuts down
+        assert not context.ok()
+        assert len(calls) == 8 and [str(e) for e in reported] == [
+            'Unable to convert call argument to Python object'] * 3
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN_ID)
+    try:
+        vo = StereoVONode(context=context, node_name='stereo_vo_spin')
+        try:  # the node's report: an error in its log and diagnostics
+            vo.report_executor_failure(reported[0])
+            assert vo._problems.errors == 1
+            assert 'the executor failed (RuntimeError: Unable' in vo._problems.last_error
+        finally:
+            vo.destroy_node()
+        node = rclpy.create_node('spin_always_fails', context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        reported.clear()
+        node.create_timer(0.001, lambda: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            spin(executor, reported.append)
+        assert len(reported) == MAX_SPIN_FAILURES - 1
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

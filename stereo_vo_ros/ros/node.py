@@ -516,6 +516,11 @@ class StereoVONode(Node):
                     self._slot = None
         self._health.counts['resets'] += 1
 
+    def report_executor_failure(self, exc: Exception) -> None:
+        """Log a failure of the executor's turn (``spin``) and hold the diagnostics at ERROR."""
+        self._problems.error(f'the executor failed ({type(exc).__name__}: {_one_line(exc)}); '
+                             'a message it was taking may be lost', key='executor failure')
+
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
         self._restart_odometry(drop_pending=True)
@@ -563,6 +568,36 @@ def _one_line(exc: BaseException) -> str:
     return ' '.join(text.split())
 
 
+#: Failures of the executor in a row (no callback done between them) after which the node
+#: stops: one lost message is survivable, an executor that fails at every turn is not.
+MAX_SPIN_FAILURES = 50
+
+
+def spin(executor: Any, report: Any) -> None:
+    """
+    Spin ``executor`` until its context shuts down, surviving a failure inside a turn.
+
+    Under load rclpy can fail to convert a message it takes from DDS ("Unable to convert call
+    argument '0' to Python object", raised by ``spin_once``): that message is lost, and
+    ``executor.spin()`` would end the process with it. Here each such failure goes to
+    ``report(exc)`` and spinning goes on; ``MAX_SPIN_FAILURES`` in a row raise the last one.
+    Shutdown (Ctrl-C, ``ExternalShutdownException``) ends the loop as ``spin()`` would.
+    """
+    failures = 0
+    while executor.context.ok():
+        try:
+            executor.spin_once()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            raise
+        except Exception as exc:  # noqa: BLE001 - reported, then raised if it keeps failing
+            failures += 1
+            if failures >= MAX_SPIN_FAILURES:
+                raise
+            report(exc)
+        else:
+            failures = 0
+
+
 def main(args: list[str] | None = None) -> int:
     """
     Run the node (``ros2 run stereo_vo_ros stereo_vo_node``) until shut down.
@@ -595,7 +630,7 @@ def main(args: list[str] | None = None) -> int:
         node.get_logger().info(profile_note)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        spin(executor, node.report_executor_failure)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ConfigError as exc:
