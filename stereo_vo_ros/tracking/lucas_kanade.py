@@ -8,11 +8,11 @@ derivative images of the whole image at every call (40-60 % of a pass of 120-200
 1241x376), and OpenCV's Python binding does not accept a prebuilt pyramid. Here an
 ``ImagePyramid`` holds the levels of one image (built on first use with ``cv2.pyrDown``, as
 OpenCV builds them; no padded copies: a window that reaches past a level reads its reflection,
-as OpenCV's padded levels hold it) and ``track`` runs Bouguet's pyramidal Lucas-Kanade
-on them with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point
-(``calcOpticalFlowPyrLK`` with ``minEigThreshold`` 1e-4 and the same termination criteria),
-with the derivatives computed only in the windows of the points (Scharr, as OpenCV) instead of
-over whole images. Its sums of integer products are exact (float64) where OpenCV's are
+as OpenCV's padded levels hold it) and ``track`` runs Bouguet's pyramidal Lucas-Kanade on them
+with a compiled kernel: OpenCV's algorithm in OpenCV's fixed point (``calcOpticalFlowPyrLK``
+with ``minEigThreshold`` 1e-4 and the same termination criteria), with the derivatives
+computed only in the windows of the points (Scharr, as OpenCV) instead of over whole images.
+Its sums of integer products are exact (integers, or float64) where OpenCV's are
 single-precision floats: on the KITTI clips the tracked positions differ from OpenCV's by 1e-4
 px or less (median) and 0.011 px or less at the 99th percentile of each kind of pass (more than
 0.01 px: 1.1 % or fewer of the new corners searched from three levels up, 0.2 % or fewer
@@ -35,6 +35,9 @@ from ..jit import kernel, readonly
 CHUNK = 16
 #: Fixed-point bits of the bilinear weights (OpenCV's ``W_BITS``).
 WEIGHT_BITS = 14
+#: Rows a column's iteration sums add up in 32-bit integers before they are widened: a product
+#: of a grey-level mismatch and a derivative (both times 32) is below 8160 * 4080 < 2**31 / 64.
+LANE_ROWS = 64
 #: Smallest eigenvalue of the window's gradient matrix (OpenCV's units, its default): below it
 #: the window has too little texture to track.
 MIN_EIGENVALUE = 1e-4
@@ -197,29 +200,36 @@ def _target_sums(img, base, stride, win, chunks, w00, w01, w10, w11, patch, grad
     top left pixel at ``base``, rows ``stride`` apart) with the bilinear weights ``w00`` ..
     ``w11``, a chunk of columns at a time (a fixed width the compiler vectorizes), times 32
     and rounded; ``patch``, ``grad_x``, ``grad_y`` hold the source window's values and
-    derivatives (``win`` rows of ``chunks * CHUNK``); ``lane_1``, ``lane_2`` (CHUNK) are
-    scratch for the per-column sums.
+    derivatives (``win`` rows of ``chunks * CHUNK``, integers); ``lane_1``, ``lane_2``
+    (CHUNK, int32) are scratch for the per-column sums, widened to 64 bits every ``LANE_ROWS``
+    rows. Integer arithmetic throughout: exact, as vectorized as the compiler makes it.
     """
     c32 = np.float32(32)
     rnd = np.float32(0.5)
     u1 = numba.uint64(1)
     wc = chunks * CHUNK
-    lane_1[:] = 0.0
-    lane_2[:] = 0.0
-    for y in range(win):
-        r0 = numba.uint64(base + y * stride)
-        for c in range(chunks):
-            o = numba.uint64(y * wc + c * CHUNK)
-            q0 = r0 + numba.uint64(c * CHUNK)
-            q1 = q0 + numba.uint64(stride)
-            for x in range(CHUNK):
-                k = numba.uint64(x)
-                v = (np.float32(img[q0 + k]) * w00 + np.float32(img[q0 + k + u1]) * w01
-                     + np.float32(img[q1 + k]) * w10 + np.float32(img[q1 + k + u1]) * w11)
-                d = np.float64(np.floor(v * c32 + rnd) - patch[o + k])
-                lane_1[x] += d * grad_x[o + k]
-                lane_2[x] += d * grad_y[o + k]
-    return lane_1.sum(), lane_2.sum()
+    b1 = 0
+    b2 = 0
+    for y_block in range(0, win, LANE_ROWS):
+        lane_1[:] = 0
+        lane_2[:] = 0
+        for y in range(y_block, min(y_block + LANE_ROWS, win)):
+            r0 = numba.uint64(base + y * stride)
+            for c in range(chunks):
+                o = numba.uint64(y * wc + c * CHUNK)
+                q0 = r0 + numba.uint64(c * CHUNK)
+                q1 = q0 + numba.uint64(stride)
+                for x in range(CHUNK):
+                    k = numba.uint64(x)
+                    v = (np.float32(img[q0 + k]) * w00 + np.float32(img[q0 + k + u1]) * w01
+                         + np.float32(img[q1 + k]) * w10 + np.float32(img[q1 + k + u1]) * w11)
+                    d = np.int32(np.floor(v * c32 + rnd)) - patch[o + k]
+                    lane_1[x] += d * grad_x[o + k]
+                    lane_2[x] += d * grad_y[o + k]
+        for x in range(CHUNK):
+            b1 += np.int64(lane_1[x])
+            b2 += np.int64(lane_2[x])
+    return np.float64(b1), np.float64(b2)
 
 
 _u8 = readonly(numba.types.uint8, 2)
@@ -246,8 +256,8 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
     A point fails (``ok`` False, on the base level only) whose window lies a window or more
     past the image (OpenCV's limit) or whose gradient matrix has a smallest eigenvalue below
     ``min_eig`` (per pixel, in OpenCV's scale) or is singular. The sums of integer products are
-    float64 and exact, where OpenCV's are single-precision floats: no summation order changes a
-    result.
+    exact (the gradient matrix's in float64, the iterations' in integers), where OpenCV's are
+    single-precision floats: no summation order changes a result.
     """
     n = prev.shape[0]
     wc = ((win + CHUNK - 1) // CHUNK) * CHUNK  # window columns processed
@@ -261,12 +271,12 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
     sr = wc + 1
     raw = np.empty((win + 3) * sf, np.float32)
     grid = np.empty((win + 2) * sg, np.float32)
-    patch = np.zeros(win * wc, np.float32)  # grey levels times 32, rounded
-    grad_x = np.zeros(win * wc, np.float64)  # Scharr derivatives (32 times grey levels per
-    grad_y = np.zeros(win * wc, np.float64)  # pixel), rounded
+    patch = np.zeros(win * wc, np.int32)  # grey levels times 32, rounded
+    grad_x = np.zeros(win * wc, np.int32)  # Scharr derivatives (32 times grey levels per
+    grad_y = np.zeros(win * wc, np.int32)  # pixel), rounded
     chunks = wc // CHUNK
-    lane_1 = np.zeros(CHUNK, np.float64)  # the sums of an iteration per column of a chunk
-    lane_2 = np.zeros(CHUNK, np.float64)
+    lane_1 = np.zeros(CHUNK, np.int32)  # the sums of an iteration per column of a chunk
+    lane_2 = np.zeros(CHUNK, np.int32)
     inside = np.zeros(wc, np.float32)  # 1 on the window's columns, 0 on the padding columns
     inside[:win] = 1
     edge_x = np.empty((win + 1) * sr, np.float32)  # derivatives at pixels, windows at the border
@@ -324,9 +334,10 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
                 grid[g + k] = (raw[f0 + k] * w00 + raw[f0 + k + u1] * w01
                                + raw[f1 + k] * w10 + raw[f1 + k + u1] * w11)
         # The rounded values are integers (``np.floor`` of float32 keeps float32, exact below
-        # 2**24); their products and sums are float64 and exact, so no summation order (SIMD,
-        # per-column partial sums, the alignment of the buffers) changes a result. Sums in
-        # float32 would, and one and two threads would then differ.
+        # 2**24); their products and sums are exact (float64 here, integers in the
+        # iterations), so no summation order (SIMD, per-column partial sums, the alignment of
+        # the buffers) changes a result. Sums in float32 would, and one and two threads would
+        # then differ.
         a11 = np.float32(0.0)
         a12 = np.float32(0.0)
         a22 = np.float32(0.0)
@@ -340,15 +351,15 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
                 o = numba.uint64(y * wc)
                 for x in range(wc):
                     k = numba.uint64(x)
-                    patch[o + k] = np.floor(grid[g1 + k + u1] * c32 + rnd)
+                    patch[o + k] = np.int32(np.floor(grid[g1 + k + u1] * c32 + rnd))
                     gx = np.float64(np.floor(
                         c3 * (grid[g0 + k + u2] - grid[g0 + k] + grid[g2 + k + u2] - grid[g2 + k])
                         + c10 * (grid[g1 + k + u2] - grid[g1 + k]) + rnd) * inside[k])
                     gy = np.float64(np.floor(
                         c3 * (grid[g2 + k] - grid[g0 + k] + grid[g2 + k + u2] - grid[g0 + k + u2])
                         + c10 * (grid[g2 + k + u1] - grid[g0 + k + u1]) + rnd) * inside[k])
-                    grad_x[o + k] = gx
-                    grad_y[o + k] = gy
+                    grad_x[o + k] = np.int32(gx)
+                    grad_y[o + k] = np.int32(gy)
                     a11 += gx * gx
                     a12 += gx * gy
                     a22 += gy * gy
@@ -376,15 +387,15 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
                 e0 = y * sr
                 e1 = e0 + sr
                 for x in range(wc):
-                    patch[o + x] = math.floor(grid[(y + 1) * sg + x + 1] * c32 + rnd)
+                    patch[o + x] = np.int32(math.floor(grid[(y + 1) * sg + x + 1] * c32 + rnd))
                     gx = math.floor(edge_x[e0 + x] * w00 + edge_x[e0 + x + 1] * w01
                                     + edge_x[e1 + x] * w10 + edge_x[e1 + x + 1] * w11 + rnd) \
                         * inside[x]
                     gy = math.floor(edge_y[e0 + x] * w00 + edge_y[e0 + x + 1] * w01
                                     + edge_y[e1 + x] * w10 + edge_y[e1 + x + 1] * w11 + rnd) \
                         * inside[x]
-                    grad_x[o + x] = gx
-                    grad_y[o + x] = gy
+                    grad_x[o + x] = np.int32(gx)
+                    grad_y[o + x] = np.int32(gy)
                     a11 += gx * gx
                     a12 += gx * gy
                     a22 += gy * gy
