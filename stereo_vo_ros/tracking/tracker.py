@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import time
 from typing import Any, Callable
 
@@ -64,6 +65,10 @@ logger = logging.getLogger(__name__)
 CLOCK = time.perf_counter
 #: A searched bucket that gave no new feature is skipped for this many frames (sky, road).
 BARREN_BUCKET_FRAMES = 8
+#: Share of the temporally tracked features whose affine refinement the helper thread takes
+#: while the caller runs the reverse pass (the caller refines the others after it): the reverse
+#: pass takes about a third of the refinement's time.
+HELPER_REFINE_SHARE = 0.65
 #: After an early replenishment, a second one runs at once (in the caller's thread) when fewer
 #: than this fraction of the features it counted on survived the later checks.
 TOP_UP_FRACTION = 0.5
@@ -452,15 +457,19 @@ class StereoTracker:
         failed['temporal'] = int(np.count_nonzero(passed & ~tracked))
         alive = np.flatnonzero(passed & tracked)
 
-        # With a helper thread the affine refinement runs next to the reverse pass, on every
-        # feature the forward pass kept (each point is refined on its own, so the ones the
-        # check keeps come out the same); not when the caller queued work of its own there
-        # (``after_checks``: the road pyramids), which the refinement would wait behind.
-        early = None
+        # With a helper thread the affine refinement runs next to the reverse pass, on the
+        # first ``HELPER_REFINE_SHARE`` of the features the forward pass kept (each point is
+        # refined on its own, so the ones the check keeps come out the same); the caller
+        # refines the rest that pass the check after its reverse pass, while the helper is still
+        # at its share. Not when the caller queued work of its own there (``after_checks``: the
+        # road pyramids), which the refinement would wait behind.
+        early, n_early = None, 0
         if self.workers.overlaps and cfg.affine_refinement and len(alive) \
                 and after_checks() is None:
+            n_early = int(math.ceil(HELPER_REFINE_SHARE * len(alive)))
             early = self.workers.submit_local(self._refined, prev_left, left,
-                                              f.left_raw[alive], cur_l[alive])
+                                              f.left_raw[alive[:n_early]],
+                                              cur_l[alive[:n_early]])
         t = clock()
         npts['temporal_bwd'] = len(alive)
         back, ok = lk_pass(self._pyramid(left_m), self._pyramid(prev_left), cur_l[alive],
@@ -468,15 +477,20 @@ class StereoTracker:
         ok &= round_trip_error(f.left_raw[alive], back) < cfg.fb_threshold_px
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
-        refined = None
         if early is not None:
             t = clock()
-            refined = early.result()[ok]
-            # Timed as the caller's wait for it: the helper's own time ran beside the reverse pass.
+            rest = alive[n_early:][ok[n_early:]]
+            refined_rest = self._refined(prev_left, left, f.left_raw[rest], cur_l[rest]) \
+                if len(rest) else cur_l[rest]
+            refined = np.concatenate([early.result()[ok[:n_early]], refined_rest])
+            # Timed as the caller's share and wait: the helper's own time ran beside the
+            # reverse pass.
             ms['affine'] += (clock() - t) * 1e3
-        alive = alive[ok]
-        cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats) \
-            if refined is None else refined
+            alive = alive[ok]
+            cur_l[alive] = refined
+        else:
+            alive = alive[ok]
+            cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
         #    disparity constraint (eq. 6) and range run before the reverse pass.
