@@ -94,6 +94,22 @@ def test_windows_past_the_border_read_it_as_opencv_does():
     assert np.percentile(np.linalg.norm(ours[ok] - ref[ok], axis=1), 90) < 1e-3
 
 
+@pytest.mark.parametrize('win', [41, 61])  # three and four chunks of window columns
+def test_large_windows_on_hard_edges_track_as_opencv(win):
+    """The largest sums an iteration adds up: full-contrast edges over a large window."""
+    yy, xx = np.mgrid[:300, :400]
+    board = (((xx // 8) + (yy // 8)) % 2 * 255).astype(np.uint8)
+    moved = cv2.warpAffine(board, np.float32([[1, 0, 1.3], [0, 1, 0.7]]), (400, 300),
+                           flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT_101)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(40, 360, 200), rng.uniform(40, 260, 200)])
+    ours, ok = track(ImagePyramid(board), ImagePyramid(moved), pts, None, 0, win, 30,
+                     KLT_EPSILON_PX)
+    ref, ref_ok = opencv(board, moved, pts, None, 0, win)
+    assert np.array_equal(ok, ref_ok) and ok.sum() > 150
+    assert np.max(np.linalg.norm(ours[ok] - ref[ok], axis=1)) < 0.01
+
+
 def test_pyramid_levels_and_their_limit_follow_opencv():
     img = textured((50, 200))
     pyr = ImagePyramid(img)

@@ -183,7 +183,7 @@ def _bilinear(x, y):
 @kernel()
 def _reflect(p, n):
     """Return pixel index ``p`` of a row or column of ``n`` (>= 1) as OpenCV's reflect-101."""
-    if n == 1:
+    if n <= 1:  # (an empty level has no pixel to read: the caller returns before)
         return 0
     while p < 0 or p >= n:
         p = -p if p < 0 else 2 * n - 2 - p
@@ -201,8 +201,9 @@ def _target_sums(img, base, stride, win, chunks, w00, w01, w10, w11, patch, grad
     ``w11``, a chunk of columns at a time (a fixed width the compiler vectorizes), times 32
     and rounded; ``patch``, ``grad_x``, ``grad_y`` hold the source window's values and
     derivatives (``win`` rows of ``chunks * CHUNK``, integers); ``lane_1``, ``lane_2``
-    (CHUNK, int32) are scratch for the per-column sums, widened to 64 bits every ``LANE_ROWS``
-    rows. Integer arithmetic throughout: exact, as vectorized as the compiler makes it.
+    (``chunks * CHUNK``, int32) are scratch for the sums of each window column, widened to 64
+    bits every ``LANE_ROWS`` rows. Integer arithmetic throughout: exact, as vectorized as the
+    compiler makes it.
     """
     c32 = np.float32(32)
     rnd = np.float32(0.5)
@@ -219,14 +220,15 @@ def _target_sums(img, base, stride, win, chunks, w00, w01, w10, w11, patch, grad
                 o = numba.uint64(y * wc + c * CHUNK)
                 q0 = r0 + numba.uint64(c * CHUNK)
                 q1 = q0 + numba.uint64(stride)
+                lane = c * CHUNK  # each window column has a lane of its own
                 for x in range(CHUNK):
                     k = numba.uint64(x)
                     v = (np.float32(img[q0 + k]) * w00 + np.float32(img[q0 + k + u1]) * w01
                          + np.float32(img[q1 + k]) * w10 + np.float32(img[q1 + k + u1]) * w11)
                     d = np.int32(np.floor(v * c32 + rnd)) - patch[o + k]
-                    lane_1[x] += d * grad_x[o + k]
-                    lane_2[x] += d * grad_y[o + k]
-        for x in range(CHUNK):
+                    lane_1[lane + x] += d * grad_x[o + k]
+                    lane_2[lane + x] += d * grad_y[o + k]
+        for x in range(wc):
             b1 += np.int64(lane_1[x])
             b2 += np.int64(lane_2[x])
     return np.float64(b1), np.float64(b2)
@@ -275,8 +277,8 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
     grad_x = np.zeros(win * wc, np.int32)  # Scharr derivatives (32 times grey levels per
     grad_y = np.zeros(win * wc, np.int32)  # pixel), rounded
     chunks = wc // CHUNK
-    lane_1 = np.zeros(CHUNK, np.int32)  # the sums of an iteration per column of a chunk
-    lane_2 = np.zeros(CHUNK, np.int32)
+    lane_1 = np.zeros(wc, np.int32)  # the sums of an iteration per window column
+    lane_2 = np.zeros(wc, np.int32)
     inside = np.zeros(wc, np.float32)  # 1 on the window's columns, 0 on the padding columns
     inside[:win] = 1
     edge_x = np.empty((win + 1) * sr, np.float32)  # derivatives at pixels, windows at the border
