@@ -528,49 +528,74 @@ def test_launch_file_compiles(tmp_path):
     assert 'def generate_launch_description' in launch.read_text()
 
 
-def test_spin_survives_failed_turns_and_gives_up_when_every_turn_fails():
-    """A turn of the executor that raises (as rclpy's take under load) is reported, not fatal."""
-    context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN_ID)
-    try:
-        node = rclpy.create_node('spin_failures', context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        calls, reported = [], []
+def test_spin_survives_failed_turns_and_stops_on_bugs_and_repeated_failures():
+    """A turn that fails as rclpy's take does under load is reported; a bug ends the loop."""
 
-        def sometimes_fails():
-            calls.append(1)
-            if len(calls) in (2, 3, 5):
-                raise RuntimeError('Unable to convert call argument to Python object')
-            if len(calls) == 8:
-                context.shutdown()
+    def spin_with(callback, name, reported=None):
+        """Spin a node whose 1 ms timer runs ``callback(context, executor)``; return reports."""
+        context = Context()
+        rclpy.init(context=context, domain_id=DOMAIN_ID)
+        reported = [] if reported is None else reported
+        try:
+            node = rclpy.create_node(name, context=context)
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            node.create_timer(0.001, lambda: callback(context, executor))
+            try:
+                spin(executor, reported.append)
+            finally:
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+        return reported
 
-        node.create_timer(0.001, sometimes_fails)
-        spin(executor, reported.append)  # returns once the context shuts down
-        assert not context.ok()
-        assert len(calls) == 8 and [str(e) for e in reported] == [
-            'Unable to convert call argument to Python object'] * 3
-        node.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=context)
+    calls = []
+
+    def sometimes_fails(context, executor):
+        calls.append(1)
+        if len(calls) in (2, 3, 5):
+            raise RuntimeError('Unable to convert call argument to Python object')
+        if len(calls) == 8:
+            context.shutdown()
+
+    reported = spin_with(sometimes_fails, 'spin_failures')  # returns at the context's shutdown
+    assert len(calls) == 8 and [str(e) for e in reported] == [
+        'Unable to convert call argument to Python object'] * 3
+    calls.clear()
+
+    def shuts_the_executor(context, executor):
+        calls.append(1)
+        if len(calls) == 3:
+            executor.shutdown(timeout_sec=0)
+
+    assert spin_with(shuts_the_executor, 'spin_shutdown') == [] and len(calls) == 3
+
+    def always_fails(context, executor):
+        raise RuntimeError('take failed')
+
+    reported = []
+    with pytest.raises(RuntimeError, match='take failed'):
+        spin_with(always_fails, 'spin_always_fails', reported)
+    assert len(reported) == MAX_SPIN_FAILURES - 1  # within the window: 50 ms here
+
+    def bug(context, executor):
+        raise ZeroDivisionError('a bug in a callback')
+
+    with pytest.raises(ZeroDivisionError):  # not survived: it would fail at every message
+        spin_with(bug, 'spin_bug')
     context = Context()
     rclpy.init(context=context, domain_id=DOMAIN_ID)
     try:
         vo = StereoVONode(context=context, node_name='stereo_vo_spin')
-        try:  # the node's report: an error in its log and diagnostics
-            vo.report_executor_failure(reported[0])
+        try:  # the node's report: an error with its trace in the log and the diagnostics
+            try:
+                raise RuntimeError('Unable to convert call argument to Python object')
+            except RuntimeError as exc:
+                vo.report_executor_failure(exc)
             assert vo._problems.errors == 1
             assert 'the executor failed (RuntimeError: Unable' in vo._problems.last_error
+            assert 'Traceback' in vo._problems.last_error
         finally:
             vo.destroy_node()
-        node = rclpy.create_node('spin_always_fails', context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
-        reported.clear()
-        node.create_timer(0.001, lambda: 1 / 0)
-        with pytest.raises(ZeroDivisionError):
-            spin(executor, reported.append)
-        assert len(reported) == MAX_SPIN_FAILURES - 1
-        node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)

@@ -517,9 +517,11 @@ class StereoVONode(Node):
         self._health.counts['resets'] += 1
 
     def report_executor_failure(self, exc: Exception) -> None:
-        """Log a failure of the executor's turn (``spin``) and hold the diagnostics at ERROR."""
+        """Log a failed turn of the executor (``spin``) with its trace; hold ERROR."""
+        trace = ''.join(traceback.format_exception(exc)).rstrip()
         self._problems.error(f'the executor failed ({type(exc).__name__}: {_one_line(exc)}); '
-                             'a message it was taking may be lost', key='executor failure')
+                             f'a message it was taking may be lost\n{trace}',
+                             key='executor failure')
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
@@ -568,34 +570,37 @@ def _one_line(exc: BaseException) -> str:
     return ' '.join(text.split())
 
 
-#: Failures of the executor in a row (no callback done between them) after which the node
-#: stops: one lost message is survivable, an executor that fails at every turn is not.
+#: Failed turns of the executor within ``SPIN_FAILURE_WINDOW_S`` after which the node stops: a
+#: lost message now and then is survivable, an executor that keeps failing is not.
 MAX_SPIN_FAILURES = 50
+SPIN_FAILURE_WINDOW_S = 10.0
 
 
 def spin(executor: Any, report: Any) -> None:
     """
-    Spin ``executor`` until its context shuts down, surviving a failure inside a turn.
+    Spin ``executor`` as ``Executor.spin`` does, surviving a ``RuntimeError`` out of a turn.
 
     Under load rclpy can fail to convert a message it takes from DDS ("Unable to convert call
-    argument '0' to Python object", raised by ``spin_once``): that message is lost, and
-    ``executor.spin()`` would end the process with it. Here each such failure goes to
-    ``report(exc)`` and spinning goes on; ``MAX_SPIN_FAILURES`` in a row raise the last one.
-    Shutdown (Ctrl-C, ``ExternalShutdownException``) ends the loop as ``spin()`` would.
+    argument '0' to Python object", a ``RuntimeError`` raised by ``spin_once``): that message is
+    lost, and ``executor.spin()`` would end the process with it. Here such a failure goes to
+    ``report(exc)`` and spinning goes on; ``MAX_SPIN_FAILURES`` of them within
+    ``SPIN_FAILURE_WINDOW_S`` raise the last one. Any other exception (a bug in a callback)
+    ends the loop at once, as it ends ``spin()``; so do the context's and the executor's
+    shutdown.
     """
-    failures = 0
-    while executor.context.ok():
+    failures: collections.deque = collections.deque()
+    # ``Executor.spin`` also stops once the executor is shut down (a private flag in Jazzy).
+    while executor.context.ok() and not getattr(executor, '_is_shutdown', False):
         try:
             executor.spin_once()
-        except (KeyboardInterrupt, ExternalShutdownException):
-            raise
-        except Exception as exc:  # noqa: BLE001 - reported, then raised if it keeps failing
-            failures += 1
-            if failures >= MAX_SPIN_FAILURES:
+        except RuntimeError as exc:
+            now = time.monotonic()
+            failures.append(now)
+            while failures[0] < now - SPIN_FAILURE_WINDOW_S:
+                failures.popleft()
+            if len(failures) >= MAX_SPIN_FAILURES:
                 raise
             report(exc)
-        else:
-            failures = 0
 
 
 def main(args: list[str] | None = None) -> int:
