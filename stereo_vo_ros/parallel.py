@@ -126,10 +126,10 @@ def cgroup_cpu_limit(cgroup_root: str = CGROUP_ROOT, proc_cgroup: str = PROC_CGR
             continue
         _, controllers, path = parts
         if controllers == '':  # cgroup v2: the unified hierarchy
-            files = [('cpu.max', None)]
+            quota_file, period_file = 'cpu.max', None
             base = root
         elif 'cpu' in controllers.split(','):  # cgroup v1: the cpu controller's hierarchy
-            files = [('cpu.cfs_quota_us', 'cpu.cfs_period_us')]
+            quota_file, period_file = 'cpu.cfs_quota_us', 'cpu.cfs_period_us'
             base = next((root / name for name in (controllers, 'cpu,cpuacct', 'cpu')
                          if (root / name).is_dir()), None)
             if base is None:
@@ -141,10 +141,9 @@ def cgroup_cpu_limit(cgroup_root: str = CGROUP_ROOT, proc_cgroup: str = PROC_CGR
             continue  # outside this namespace's view of the groups
         group = Path(path)
         for folder in [group, *group.parents]:
-            for quota_file, period_file in files:
-                limit = _cpu_limit(base / folder.relative_to('/'), quota_file, period_file)
-                if limit is not None:
-                    limits.append(limit)
+            limit = _cpu_limit(base / folder.relative_to('/'), quota_file, period_file)
+            if limit is not None:
+                limits.append(limit)
     return min(limits) if limits else None
 
 

@@ -477,6 +477,7 @@ class StereoTracker:
         ok &= round_trip_error(f.left_raw[alive], back) < cfg.fb_threshold_px
         ms['temporal_bwd'] = (clock() - t) * 1e3
         failed['fb'] = int(np.count_nonzero(~ok))
+        refined = None
         if early is not None:
             t = clock()
             rest = alive[n_early:][ok[n_early:]]
@@ -486,11 +487,9 @@ class StereoTracker:
             # Timed as the caller's share and wait: the helper's own time ran beside the
             # reverse pass.
             ms['affine'] += (clock() - t) * 1e3
-            alive = alive[ok]
-            cur_l[alive] = refined
-        else:
-            alive = alive[ok]
-            cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats)
+        alive = alive[ok]
+        cur_l[alive] = self._refine(prev_left, left, f.left_raw[alive], cur_l[alive], stats) \
+            if refined is None else refined
 
         # 2. Stereo pass left(t2) -> right(t2) from the previous (or predicted) disparity; the
         #    disparity constraint (eq. 6) and range run before the reverse pass.
