@@ -208,6 +208,27 @@ def test_compared_pixels_lie_on_a_fixed_lattice_inside_the_level(highway):
     assert len(ra._grids) == 2  # one full grid per level, whatever the first row
 
 
+def test_levels_are_sampled_bilinearly_and_zero_where_they_cannot_be():
+    """The kernel's samples are the bilinear interpolation (float64) of every channel."""
+    from stereo_vo_ros.road.road_alignment import _sample
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0, 255, (3, 30, 50)).astype(np.float32)  # planes
+    row0 = 12.0  # the array starts at this row of its level
+    u = np.concatenate([rng.uniform(0.01, 48.99, 500), [0.0, 49.0, 10.5, 10.5, np.nan, 7.0]])
+    v = np.concatenate([rng.uniform(0.01, 28.99, 500), [5.0, 5.0, 0.0, 29.0, 5.0, np.nan]])
+    v = v + row0
+    out = np.full((len(u), 3), np.nan)
+    _sample(img, u, v, row0, out)
+    x0, y0 = np.floor(u[:500]).astype(int), np.floor(v[:500] - row0).astype(int)
+    a, b = (u[:500] - x0)[:, None], (v[:500] - row0 - y0)[:, None]
+    grey = img.transpose(1, 2, 0).astype(np.float64)
+    expected = (1 - b) * ((1 - a) * grey[y0, x0] + a * grey[y0, x0 + 1]) \
+        + b * ((1 - a) * grey[y0 + 1, x0] + a * grey[y0 + 1, x0 + 1])
+    np.testing.assert_allclose(out[:500], expected, rtol=0, atol=1e-9)
+    # On or past the array's border (the 2 x 2 neighbourhood would leave it), or NaN: zeros.
+    np.testing.assert_array_equal(out[500:], 0.0)
+
+
 def test_fuse_is_a_kalman_update_of_the_measured_components():
     est = MotionEstimator(Config())
     est.mean = np.array([0.1, 0.0, 24.0, 0.0, 0.01, 0.0])

@@ -32,12 +32,14 @@ level's full image), on the plane between
 optical axis. Frames: the previous / current left camera optical frames (x right, y down,
 z forward), metres; ``T_prev_cur`` is the pose of the current left camera in the previous one.
 
-The per-pixel work of a Gauss-Newton step (moving and projecting the road points, the ESM
-gradients, the Cauchy weights, the normal equations) runs in compiled kernels
-(:mod:`~stereo_vo_ros.jit`); the images are sampled with ``cv2.remap`` (the three interleaved
-channels of a level in one call). Points are stored one row per coordinate ((3, N)), small
-solves go through OpenCV, the lattice is computed once per level geometry, and a pixel that
-leaves the view is dropped for the rest of the level.
+The per-pixel work (choosing the road pixels, sampling the images, the stereo and temporal
+residuals, the ESM gradients, the Cauchy weights, the normal equations) runs in compiled
+kernels (:mod:`~stereo_vo_ros.jit`), which release the GIL: the pipeline refines the plane on
+its helper thread next to the tracking. The images are sampled with exact bilinear weights
+(``cv2.remap`` quantises them to 1/32 px in some versions and channel counts), from one plane
+per quantity (value, d/du, d/dv) that the OpenCV filters write in place. Points are stored one
+row per coordinate ((3, N)), small solves go through OpenCV, the lattice is computed once per
+level geometry, and a pixel that leaves the view is dropped for the rest of the level.
 """
 
 from __future__ import annotations
@@ -49,7 +51,6 @@ import cv2
 import numba
 import numpy as np
 
-from .ground_plane import sample_bilinear
 from ..config import RansacConfig, RoadConfig
 from ..estimation.camera import StereoCalibration
 from ..estimation.motion import velocity_from_transform
@@ -129,10 +130,10 @@ class RoadLevel:
 
     Attributes
     ----------
-    left : (H, W) float32 the blurred left image (grey levels).
-    left_grad : (H, W, 3) float32 the blurred left image and its x and y gradients (grey
-        levels, grey levels per pixel), sampled together.
-    right_grad : (H, W, 2) float32 the blurred right image and its x gradient.
+    left : (H, W) float32 the blurred left image (grey levels; ``left_grad[0]``).
+    left_grad : (3, H, W) float32 the blurred left image and its x and y gradients (grey
+        levels, grey levels per pixel), one plane each.
+    right_grad : (2, H, W) float32 the blurred right image and its x gradient.
     scale : float pixels of this level per pixel of the input (1, 1/2, 1/4, ...).
     row0 : int the arrays start at this row of the level (the rows above see no road).
 
@@ -148,11 +149,6 @@ class RoadLevel:
         """Focal length and principal point (f, cx, cy) of the left camera at this level."""
         K, s = calib.K_left, self.scale  # cv2.pyrDown: pixel j of a level is pixel 2j below
         return K[0, 0] * s, K[0, 2] * s, K[1, 2] * s
-
-    def inside(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Whether pixels (u, v) of the level can be sampled (bilinear, inside the arrays)."""
-        h, w = self.left.shape
-        return (u > 0) & (u < w - 1) & (v > self.row0) & (v < self.row0 + h - 1)
 
 
 @dataclass
@@ -189,25 +185,119 @@ class RoadMotion:
     scale: float
 
 
-def _scale(r: np.ndarray) -> float:
-    """
-    Return the robust scale of residuals r (grey levels).
-
-    1.4826 times the median (the upper one) absolute residual below ``MAX_DIFFERENCE``, of
-    every ``SCALE_SUBSAMPLE``-th residual (``np.median`` was a tenth of the alignment's time).
-    """
-    a = np.abs(r[::SCALE_SUBSAMPLE] if len(r) >= 400 * SCALE_SUBSAMPLE else r)
-    a = a[a < MAX_DIFFERENCE]
-    if not a.size:
-        return MAX_DIFFERENCE
-    return max(1.4826 * float(np.partition(a, a.size // 2)[a.size // 2]), MIN_SCALE)
-
-
-_F8, _F4 = numba.types.float64, numba.types.float32
+_F8, _I8 = numba.types.float64, numba.types.int64
 _M2, _V1 = readonly(_F8, 2), readonly(_F8, 1)
-_S2 = readonly(_F4, 2)
 _W1, _W2 = numba.types.Array(_F8, 1, 'C'), numba.types.Array(_F8, 2, 'C')
 _B1 = numba.types.Array(numba.types.boolean, 1, 'C')
+_IDX, _I1 = numba.types.Array(_I8, 1, 'C'), readonly(_I8, 1)
+_IMG = readonly(numba.types.float32, 3)  # (planes, H, W)
+
+
+@kernel(_F8(_V1))
+def _scale(r):
+    """
+    Return the robust scale of residuals r (N,) (grey levels).
+
+    1.4826 times the median (the upper one) absolute residual below ``MAX_DIFFERENCE``, of
+    every ``SCALE_SUBSAMPLE``-th residual (the median of all was a tenth of the alignment's
+    time), at least ``MIN_SCALE``.
+    """
+    step = SCALE_SUBSAMPLE if len(r) >= 400 * SCALE_SUBSAMPLE else 1
+    a = np.empty((len(r) + step - 1) // step)
+    n = 0
+    for i in range(0, len(r), step):
+        if abs(r[i]) < MAX_DIFFERENCE:
+            a[n] = abs(r[i])
+            n += 1
+    if n == 0:
+        return MAX_DIFFERENCE
+    return max(1.4826 * np.partition(a[:n], n // 2)[n // 2], MIN_SCALE)
+
+
+@kernel()
+def _inside(x, y, w, h):
+    """Whether array pixel (x, y) of a (h, w) array can be sampled (not NaN, 2 x 2 inside)."""
+    return x > 0.0 and x < w - 1.0 and y > 0.0 and y < h - 1.0
+
+
+@kernel()
+def _bilinear(img, c, ix, iy, a, b):
+    """
+    Bilinear sample of plane ``c`` of ``img`` (C, H, W) at array pixel (ix + a, iy + b).
+
+    ``ix, iy`` the integer part of a pixel that ``_inside`` accepts, ``a, b`` the fractions.
+    """
+    p00, p01 = np.float64(img[c, iy, ix]), np.float64(img[c, iy, ix + 1])
+    p10, p11 = np.float64(img[c, iy + 1, ix]), np.float64(img[c, iy + 1, ix + 1])
+    top = p00 + a * (p01 - p00)
+    return top + b * (p10 + a * (p11 - p10) - top)
+
+
+@kernel(numba.types.void(_IMG, _V1, _V1, _F8, _W2))
+def _sample(img, u, v, row0, out):
+    """
+    Write bilinear samples (N, 3) of a level's left planes ``img`` (3, H, W) at pixels (u, v).
+
+    The planes start at the level's row ``row0``. A pixel that cannot be sampled (``_inside``)
+    gets zeros.
+    """
+    h, w = img.shape[1], img.shape[2]
+    for i in range(len(u)):
+        x, y = u[i], v[i] - row0
+        if not _inside(x, y, w, h):
+            out[i, 0] = out[i, 1] = out[i, 2] = 0.0
+            continue
+        ix, iy = int(x), int(y)  # positive: truncation is the floor
+        for c in range(3):
+            out[i, c] = _bilinear(img, c, ix, iy, x - ix, y - iy)
+
+
+@kernel(_I8(_V1, _V1, _V1, _V1, _V1, _F8, _F8, _F8, _F8, _W1, _W1, _W2))
+def _road_rays(us, vs, xr, yr, n, d, min_depth, max_depth, max_lateral, us_out, vs_out, ray):
+    """
+    Write the pixels (us, vs) whose rays (xr, yr, 1) meet the road, and those rays; count them.
+
+    The road: the plane ``n . X = d`` between the depths ``min_depth`` and ``max_depth`` and
+    within ``max_lateral`` of the optical axis (m). ``ray`` is (3, N), its last row ones.
+    """
+    count = 0
+    for i in range(len(us)):
+        depth = d / (n[0] * xr[i] + n[1] * yr[i] + n[2])
+        if depth > min_depth and depth < max_depth and abs(xr[i] * depth) < max_lateral:
+            us_out[count], vs_out[count] = us[i], vs[i]
+            ray[0, count], ray[1, count], ray[2, count] = xr[i], yr[i], 1.0
+            count += 1
+    return count
+
+
+@kernel(_I8(_IMG, _F8, _M2, _V1, _V1, _M2, _M2, _V1, _F8, _F8, _F8, _W1, _W2, _IDX))
+def _stereo_residuals(right, row0, H, us, vs, ray, tmpl, p, fb, gain, offset, r, sampled, idx):
+    """
+    Write the stereo residuals ``g I_R + o - I_L`` (grey levels) of left pixels on plane p.
+
+    The disparity of the left pixel (us, vs) on ray ``ray`` (3, N; z = 1) is ``fb p . r``;
+    ``H`` (3, 3) moves the calibrated right pixel to where the right level's planes ``right``
+    (2, H, W: value, d/du; starting at row ``row0``) show it; ``tmpl`` (N, 3) are the left
+    samples (value first), g and o the right camera's gain and offset. Only the pixels whose
+    match can be sampled: their residuals to ``r``, the right samples to ``sampled`` (N, 2)
+    and their indices to ``idx``, in order; returns how many.
+    """
+    h, w = right.shape[1], right.shape[2]
+    n = 0
+    for i in range(len(us)):
+        ur = us[i] - fb * (p[0] * ray[0, i] + p[1] * ray[1, i] + p[2] * ray[2, i])
+        iw = 1.0 / (H[2, 0] * ur + H[2, 1] * vs[i] + H[2, 2])
+        x = (H[0, 0] * ur + H[0, 1] * vs[i] + H[0, 2]) * iw
+        y = (H[1, 0] * ur + H[1, 1] * vs[i] + H[1, 2]) * iw - row0
+        if not _inside(x, y, w, h):
+            continue
+        ix, iy = int(x), int(y)
+        for c in range(2):
+            sampled[n, c] = _bilinear(right, c, ix, iy, x - ix, y - iy)
+        r[n] = gain * sampled[n, 0] + offset - tmpl[i, 0]
+        idx[n] = i
+        n += 1
+    return n
 
 
 @kernel()
@@ -220,20 +310,9 @@ def _motion_row(ga, gb, xn, yn, iz, free, row):
     With ``(ga, gb) = (f, 0)`` (``(0, f)``) the row is the derivative of the pixel's u (v).
     """
     c = ga * xn + gb * yn
+    every = (ga * iz, gb * iz, -c * iz, -(c * yn + gb), c * xn + ga, gb * xn - ga * yn)
     for j in range(len(free)):
-        comp = free[j]
-        if comp == 0:
-            row[j] = ga * iz
-        elif comp == 1:
-            row[j] = gb * iz
-        elif comp == 2:
-            row[j] = -c * iz
-        elif comp == 3:
-            row[j] = -(c * yn + gb)
-        elif comp == 4:
-            row[j] = c * xn + ga
-        else:
-            row[j] = gb * xn - ga * yn
+        row[j] = every[free[j]]
 
 
 @kernel()
@@ -262,54 +341,47 @@ def _mirror(A):
             A[col, a] = A[a, col]
 
 
-@kernel(numba.types.int64(_M2, _M2, _F8, _F8, _F8, _F8, _F8, _F8, _F8, _W2, _B1))
-def _project_road(X, T, f, cx, cy, min_z, u_max, v_min, v_max, out, alive):
+@kernel(_I8(_M2, _M2, _F8, _F8, _F8, _F8, _IMG, _F8, _M2, _F8, _F8, _W2, _B1, _W2, _W1, _W1))
+def _warp_road(X, T, f, cx, cy, min_z, img, row0, tmpl, gain, offset, proj, alive, cur_s, r,
+               r_alive):
     """
-    Move road points into the current camera and project them; return how many stay alive.
+    Move the road points into the current image and compare; return how many stay alive.
 
     ``X`` (3, N) points (m), ``T`` (4, 4) the transform into the current frame; writes
-    ``out`` (5, N): u, v (pixels of the level), x / z, y / z and 1 / z. A point stays
-    ``alive`` (N,) while it is farther than ``min_z`` and its pixel lies inside
-    ``(0, u_max) x (v_min, v_max)``; one that is not gets u = v = -1 (sampled outside).
+    ``proj`` (5, N): u, v (pixels of the level), x / z, y / z and 1 / z. A point stays
+    ``alive`` (N,) while it is farther than ``min_z`` and the current left planes ``img``
+    (3, H, W; from the level's row ``row0``) can be sampled there (``_inside``). For those:
+    the samples (value, d/du, d/dv) to ``cur_s`` (N, 3) and the residuals
+    ``g I_cur + o - I_prev`` (grey levels; ``tmpl`` (N, 3) the template) to ``r`` (N,) and,
+    in order, to ``r_alive``. The others get u = v = -1 and zeros.
     """
+    h, w = img.shape[1], img.shape[2]
     count = 0
     for i in range(X.shape[1]):
+        if alive[i]:
+            x, y, z = X[0, i], X[1, i], X[2, i]
+            xc = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+            yc = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+            zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+            iz = 1.0 / zc
+            xn, yn = xc * iz, yc * iz
+            u, v = f * xn + cx, f * yn + cy
+            alive[i] = zc > min_z and _inside(u, v - row0, w, h)
         if not alive[i]:
-            out[0, i] = out[1, i] = -1.0
+            proj[0, i] = proj[1, i] = -1.0
+            cur_s[i, 0] = cur_s[i, 1] = cur_s[i, 2] = r[i] = 0.0
             continue
-        x, y, z = X[0, i], X[1, i], X[2, i]
-        xc = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-        yc = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
-        zc = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
-        iz = 1.0 / zc
-        xn, yn = xc * iz, yc * iz
-        u, v = f * xn + cx, f * yn + cy
-        if zc > min_z and u > 0.0 and u < u_max and v > v_min and v < v_max:
-            out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = u, v, xn, yn, iz
-            count += 1
-        else:
-            alive[i] = False
-            out[0, i] = out[1, i] = -1.0
+        proj[0, i], proj[1, i], proj[2, i], proj[3, i], proj[4, i] = u, v, xn, yn, iz
+        ix, iy = int(u), int(v - row0)  # positive: truncation is the floor
+        for c in range(3):
+            cur_s[i, c] = _bilinear(img, c, ix, iy, u - ix, v - row0 - iy)
+        r[i] = gain * cur_s[i, 0] + offset - tmpl[i, 0]
+        r_alive[count] = r[i]
+        count += 1
     return count
 
 
-@kernel(numba.types.int64(_S2, _S2, readonly(numba.types.boolean, 1), _F8, _F8, _W1, _W1))
-def _road_residuals(cur_s, tmpl, alive, gain, offset, r, r_alive):
-    """
-    Write the residuals ``g I_cur + o - I_prev`` (grey levels); return the alive ones' number.
-
-    All of them go to ``r`` (N,), those of the alive pixels, in order, to ``r_alive``.
-    """
-    n = 0
-    for i in range(len(r)):
-        r[i] = gain * cur_s[i, 0] + offset - tmpl[i, 0]
-        if alive[i]:
-            r_alive[n] = r[i]
-            n += 1
-    return n
-
-
-@kernel(numba.types.boolean(_S2, _S2, _V1, _V1, _M2, _V1, readonly(numba.types.boolean, 1),
+@kernel(numba.types.boolean(_M2, _M2, _V1, _V1, _M2, _V1, readonly(numba.types.boolean, 1),
                             _M2, _F8, _F8, _F8, _F8, readonly(numba.types.int64, 1), _W2, _W1))
 def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, free, A, b):
     """
@@ -317,7 +389,7 @@ def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, 
 
     ``cur_s`` (N, 3) the current image's value and gradients at the projected pixels, ``tmpl``
     (N, 3) the template's, ``us, vs`` (N,) the template pixels, ``proj`` (5, N) from
-    ``_project_road``, ``r`` (N,) the residuals, ``alive`` (N,) the pixels compared, ``G``
+    ``_warp_road``, ``r`` (N,) the residuals, ``alive`` (N,) the pixels compared, ``G``
     the inverse plane warp (current -> previous pixels), ``c2`` the squared Cauchy scale,
     ``max_r2`` the squared occluder limit, ``free`` the state components refined. Rows of J:
     the components of ``free`` (``_motion_row``), then gain and offset; weights as
@@ -348,26 +420,59 @@ def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, 
     return True
 
 
-@kernel(numba.types.void(_S2, _M2, _V1, _F8, _F8, _F8, _W2, _W1))
-def _plane_system(sampled, ray, r, fb_gain, c2, max_r2, A, b):
+@kernel(numba.types.void(_M2, _M2, _I1, _V1, _F8, _F8, _F8, _W2, _W1))
+def _plane_system(sampled, ray, idx, r, fb_gain, c2, max_r2, A, b):
     """
     Write the normal equations ``A x = b`` of a Gauss-Newton step of the plane.
 
-    ``sampled`` (N, 2) the right image's value and x gradient at the matches, ``ray`` (3, N)
-    the left rays (z = 1), ``r`` (N,) the stereo residuals, ``fb_gain`` focal length times
-    baseline times the right camera's gain, ``c2`` the squared Cauchy scale, ``max_r2`` the
-    squared occluder limit. Rows of J: the plane's p = n / d, then gain and offset; weights as
-    ``_accumulate`` gives them.
+    ``sampled`` (M, 2) the right image's value and x gradient at the matches, ``ray`` (3, N)
+    the left rays (z = 1), ``idx`` (M,) the matches' rays, ``r`` (M,) the stereo residuals,
+    ``fb_gain`` focal length times baseline times the right camera's gain, ``c2`` the squared
+    Cauchy scale, ``max_r2`` the squared occluder limit. Rows of J: the plane's p = n / d,
+    then gain and offset; weights as ``_accumulate`` gives them.
     """
     A[:, :] = 0.0
     b[:] = 0.0
     row = np.empty(5)
-    for i in range(len(r)):
-        g = -fb_gain * sampled[i, 1]
+    for m in range(len(r)):
+        i = idx[m]
+        g = -fb_gain * sampled[m, 1]
         row[0], row[1], row[2] = g * ray[0, i], g * ray[1, i], g * ray[2, i]
-        row[3], row[4] = sampled[i, 0], 1.0
-        _accumulate(row, r[i], c2, max_r2, A, b)
+        row[3], row[4] = sampled[m, 0], 1.0
+        _accumulate(row, r[m], c2, max_r2, A, b)
     _mirror(A)
+
+
+@kernel(_F8(_M2, _I1, _V1, _F8))
+def _disparity_rms(ray, idx, dp, fb):
+    """RMS change ``fb dp . r`` of the disparities of the rays ``ray[:, idx]`` (3, N; pixels)."""
+    total = 0.0
+    for i in idx:
+        d = fb * (dp[0] * ray[0, i] + dp[1] * ray[1, i] + dp[2] * ray[2, i])
+        total += d * d
+    return math.sqrt(total / len(idx)) if len(idx) else math.nan
+
+
+@kernel(_I8(_V1, _V1, _M2, _M2, _I1, _V1, _F8, _V1, _W1, _W1, _W2, _W2))
+def _plane_pixels(us, vs, ray, tmpl, idx, r, limit, p, us_out, vs_out, X, tmpl_out):
+    """
+    Write the pixels ``idx`` (M,) whose residual r (M,) is below ``limit`` in magnitude.
+
+    Their coordinates from ``us, vs`` (N,), their points ``X = ray / p . ray`` (3, N) on the
+    plane p = n / d, and their template rows from ``tmpl`` (N, 3); returns how many.
+    """
+    count = 0
+    for m in range(len(idx)):
+        if not abs(r[m]) < limit:
+            continue
+        i = idx[m]
+        depth = 1.0 / (p[0] * ray[0, i] + p[1] * ray[1, i] + p[2] * ray[2, i])
+        us_out[count], vs_out[count] = us[i], vs[i]
+        for c in range(3):
+            X[c, count] = ray[c, i] * depth
+            tmpl_out[count, c] = tmpl[i, c]
+        count += 1
+    return count
 
 
 @kernel(_F8(_M2, readonly(numba.types.boolean, 1), _F8, readonly(numba.types.int64, 1), _V1))
@@ -401,6 +506,10 @@ def _exp_se3(delta: np.ndarray) -> np.ndarray:
     T[:3, :3] = cv2.Rodrigues(np.asarray(delta[3:], np.float64).reshape(3, 1))[0]
     T[:3, 3] = delta[:3]
     return T
+
+
+#: No rig correction (``RoadAligner._stereo``).
+_IDENTITY = np.eye(3)
 
 
 def _at_level(H: np.ndarray | None, scale: float) -> np.ndarray | None:
@@ -467,13 +576,17 @@ class RoadAligner:
         for k in range(first, first + self.cfg.levels):
             if k > first:
                 lo, ro = cv2.pyrDown(lo), cv2.pyrDown(ro)
-            lb = cv2.GaussianBlur(lo, (ksize, ksize), sigma) if sigma > 0 else lo
-            rb = cv2.GaussianBlur(ro, (ksize, ksize), sigma) if sigma > 0 else ro
-            levels.append(RoadLevel(
-                lb, cv2.merge([lb, cv2.Sobel(lb, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
-                               cv2.Sobel(lb, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)]),
-                cv2.merge([rb, cv2.Sobel(rb, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)]),
-                0.5 ** k, r0 // 2 ** k))
+            # Written in place into the planes the kernels sample (no interleaving copy).
+            lp, rp = np.empty((3, *lo.shape), np.float32), np.empty((2, *ro.shape), np.float32)
+            for src, planes in ((lo, lp), (ro, rp)):
+                if sigma > 0:
+                    cv2.GaussianBlur(src, (ksize, ksize), sigma, dst=planes[0])
+                else:
+                    planes[0] = src
+                for c in range(1, len(planes)):
+                    cv2.Sobel(planes[0], cv2.CV_32F, int(c == 1), int(c == 2), dst=planes[c],
+                              ksize=3, scale=0.125)
+            levels.append(RoadLevel(lp[0], lp, rp, 0.5 ** k, r0 // 2 ** k))
         return RoadImages(levels)
 
     def _grid(self, level: RoadLevel, calib: StereoCalibration
@@ -510,17 +623,16 @@ class RoadAligner:
         The road is the plane between the depth bounds and within ``road.max_lateral_m`` of
         the optical axis.
 
-        Returns their coordinates u, v (N,) (pixels of the level) and 3-D points (3, N) (m),
+        Returns their coordinates u, v (N,) (pixels of the level) and rays (3, N) (z = 1),
         one coordinate per row.
         """
         us, vs, xr, yr = self._grid(level, calib)
-        n = plane.normal
-        with np.errstate(divide='ignore', invalid='ignore'):
-            depth = plane.d / (n[0] * xr + n[1] * yr + n[2])
-        on = (depth > self.cfg.min_depth_m) & (depth < self.cfg.max_depth_m) & \
-            (np.abs(xr * depth) < self.cfg.max_lateral_m)
-        depth = depth[on]
-        return us[on], vs[on], np.stack([xr[on] * depth, yr[on] * depth, depth])
+        n = len(us)
+        us_on, vs_on, ray = np.empty(n), np.empty(n), np.empty((3, n))
+        count = _road_rays(us, vs, xr, yr, np.asarray(plane.normal, np.float64),
+                           float(plane.d), self.cfg.min_depth_m, self.cfg.max_depth_m,
+                           self.cfg.max_lateral_m, us_on, vs_on, ray)
+        return us_on[:count], vs_on[:count], np.ascontiguousarray(ray[:, :count])
 
     def refine_plane(self, images: RoadImages, calib: StereoCalibration, plane: RoadPlane,
                      right_map: np.ndarray | None = None) -> RoadPlane | None:
@@ -562,28 +674,25 @@ class RoadAligner:
             fb = level.intrinsics(calib)[0] * calib.baseline_m
             H = _at_level(right_map, level.scale)
             norm = float(np.linalg.norm(p))
-            us, vs, X = self._road_pixels(level, calib, RoadPlane(p / norm, 1.0 / norm))
+            us, vs, ray = self._road_pixels(level, calib, RoadPlane(p / norm, 1.0 / norm))
             if len(us) < self.cfg.min_pixels * level.scale ** 2:
                 return None
-            ray = np.ascontiguousarray(X / X[2])  # (3, N), z = 1
-            tmpl = sample_bilinear(level.left_grad, us, vs - level.row0)  # value, d/du, d/dv
-            ref = tmpl[:, 0]
+            tmpl = np.empty((len(us), 3))  # the left image's value, d/du, d/dv
+            _sample(level.left_grad, us, vs, float(level.row0), tmpl)
             grids.insert(0, (level, fb, H, us, vs, ray, tmpl))
             for _ in range(self.cfg.stereo_iterations):
-                r, ok, sampled = self._stereo_residuals(level, fb, H, us, vs, ray, ref, p, gain,
-                                                        offset)
+                r, idx, sampled = self._stereo(level, fb, H, us, vs, ray, tmpl, p, gain, offset)
                 if len(r) < self.cfg.min_pixels * level.scale ** 2:
                     return None
-                ray_ok = ray if ok is None else np.ascontiguousarray(ray[:, ok])
                 A, b = np.empty((5, 5)), np.empty(5)
-                _plane_system(sampled, ray_ok, r.astype(np.float64), fb * float(gain),
+                _plane_system(sampled, ray, idx, r, fb * float(gain),
                               (CAUCHY_SCALES * _scale(r)) ** 2, MAX_DIFFERENCE ** 2, A, b)
                 step = _solve(A, b)
                 if step is None:
                     return None
                 p = p + step[:3]
                 gain, offset = gain + step[3], offset + step[4]
-                moved = float(np.sqrt(np.mean((fb * (step[:3] @ ray_ok)) ** 2))) / level.scale
+                moved = _disparity_rms(ray, idx, step[:3], fb) / level.scale
         norm = float(np.linalg.norm(p))
         if not (np.isfinite(norm) and norm > 0 and moved < PLANE_CONVERGED_PX):
             return None
@@ -594,47 +703,36 @@ class RoadAligner:
         # within STEREO_INLIER_SCALES robust scales): a vehicle standing on the road does not.
         pixels = []
         for level, fb, H, us, vs, ray, tmpl in grids:
-            r, ok, _ = self._stereo_residuals(level, fb, H, us, vs, ray, tmpl[:, 0], p, gain,
-                                              offset)
-            keep = np.abs(r) < STEREO_INLIER_SCALES * _scale(r)
-            if ok is not None:
-                keep = np.flatnonzero(ok)[keep]
-            ray_keep = ray[:, keep]
-            pixels.append((us[keep], vs[keep], ray_keep / (p @ ray_keep), tmpl[keep]))
+            r, idx, _ = self._stereo(level, fb, H, us, vs, ray, tmpl, p, gain, offset)
+            n = len(r)
+            us_in, vs_in, X, tmpl_in = np.empty(n), np.empty(n), np.empty((3, n)), np.empty((n, 3))
+            m = _plane_pixels(us, vs, ray, tmpl, idx, r, STEREO_INLIER_SCALES * _scale(r), p,
+                              us_in, vs_in, X, tmpl_in)
+            pixels.append((us_in[:m], vs_in[:m], np.ascontiguousarray(X[:, :m]), tmpl_in[:m]))
         return RoadPlane(out.normal, out.d, tuple(pixels))
 
     @staticmethod
-    def _stereo_residuals(level: RoadLevel, fb: float, H: np.ndarray | None, us: np.ndarray,
-                          vs: np.ndarray, ray: np.ndarray, ref: np.ndarray, p: np.ndarray,
-                          gain: float, offset: float
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _stereo(level: RoadLevel, fb: float, H: np.ndarray | None, us: np.ndarray,
+                vs: np.ndarray, ray: np.ndarray, tmpl: np.ndarray, p: np.ndarray, gain: float,
+                offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """
         Stereo residuals ``g I_R + o - I_L`` (grey levels) of left pixels (us, vs) on plane p.
 
         The disparity of the pixel on ray r (z = 1) is ``fb p . r``; the right camera's gain g
         and offset o may differ from the left one's. ``H`` (3, 3; pixels of the level) moves
         the calibrated right pixel to where the right image shows it (None: identity). ``ray``
-        is (3, N). Returns the residuals of the pixels whose match lies inside the right image,
-        that mask (N,) (None when all do) and the right image's samples (value, d/du) there.
-        The Gauss-Newton step takes d/du as the residual's derivative by the calibrated
-        column: H differs from the identity by a small rotation and offsets, which change that
-        derivative by parts in a thousand.
+        is (3, N), ``tmpl`` (N, 3) the left samples. Returns the residuals (M,) of the pixels
+        whose match lies inside the right image, their indices (M,) and the right image's
+        samples (value, d/du) (M, 2) there. The Gauss-Newton step takes d/du as the
+        residual's derivative by the calibrated column: H differs from the identity by a small
+        rotation and offsets, which change that derivative by parts in a thousand.
         """
-        ur = us - fb * (p @ ray)
-        vr = vs
-        if H is not None:
-            w = H[2, 0] * ur + H[2, 1] * vs + H[2, 2]
-            ur, vr = ((H[0, 0] * ur + H[0, 1] * vs + H[0, 2]) / w,
-                      (H[1, 0] * ur + H[1, 1] * vs + H[1, 2]) / w)
-            ok = level.inside(ur, vr)
-        else:
-            ok = (ur > 0) & (ur < level.left.shape[1] - 1)
-        if ok.all():
-            ok = None
-        else:
-            ur, vr, ref = ur[ok], vr[ok], ref[ok]
-        sampled = sample_bilinear(level.right_grad, ur, vr - level.row0)
-        return gain * sampled[:, 0] + offset - ref, ok, sampled
+        n = len(us)
+        r, idx, sampled = np.empty(n), np.empty(n, np.int64), np.empty((n, 2))
+        m = _stereo_residuals(level.right_grad, float(level.row0), _IDENTITY if H is None else H,
+                              us, vs, ray, tmpl, np.asarray(p, np.float64), fb, float(gain),
+                              float(offset), r, sampled, idx)
+        return r[:m], idx[:m], sampled[:m]
 
     def align(self, prev: RoadImages, cur: RoadImages, calib: StereoCalibration,
               plane: RoadPlane, T_prev_cur: np.ndarray, dt: float) -> RoadMotion | None:
@@ -681,28 +779,29 @@ class RoadAligner:
             if plane.pixels is not None:
                 us, vs, X, tmpl = plane.pixels[index]
             else:
-                us, vs, X = self._road_pixels(lp, calib, plane)
+                us, vs, ray = self._road_pixels(lp, calib, plane)
+                X = ray * (plane.d / (plane.normal @ ray))
                 tmpl = None
             need = self.cfg.min_pixels * lp.scale ** 2
             if len(us) < need or not dt > 0:
                 return None
             if tmpl is None:
-                tmpl = sample_bilinear(lp.left_grad, us, vs - lp.row0)  # (n, 3): value, d/du, d/dv
+                tmpl = np.empty((len(us), 3))  # value, d/du, d/dv
+                _sample(lp.left_grad, us, vs, float(lp.row0), tmpl)
             iterations = self.cfg.motion_iterations if index == 0 else self.cfg.coarse_iterations
-            h, w = lc.left.shape
             X = np.ascontiguousarray(X, np.float64)
             # A pixel that leaves the view is dropped for the rest of the level.
             n = len(us)
             alive, proj, r, r_alive = np.ones(n, bool), np.empty((5, n)), np.empty(n), \
                 np.empty(n)
+            cur_s = np.empty((n, 3))
             for _ in range(iterations):
-                n_ok = _project_road(X, T_cp, f, cx, cy, self.cfg.min_depth_m / 2, w - 1.0,
-                                     float(lc.row0), lc.row0 + h - 1.0, proj, alive)
+                # The exposure may change between the pairs: r = g I_cur + o - I_prev.
+                n_ok = _warp_road(X, T_cp, f, cx, cy, self.cfg.min_depth_m / 2, lc.left_grad,
+                                  float(lc.row0), tmpl, float(gain), float(offset), proj, alive,
+                                  cur_s, r, r_alive)
                 if n_ok < need:
                     return None
-                cur_s = sample_bilinear(lc.left_grad, proj[0], proj[1] - lc.row0)
-                # The exposure may change between the pairs: r = g I_cur + o - I_prev.
-                n_r = _road_residuals(cur_s, tmpl, alive, float(gain), float(offset), r, r_alive)
                 # ESM (Benhimane & Malis): the mean of the current image's gradient and the
                 # template's, carried into current pixels by the Jacobian of the inverse plane
                 # warp G (current -> previous pixels). The current image alone (forward
@@ -711,7 +810,7 @@ class RoadAligner:
                 G = K @ cv2.invert(T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal)
                                    / plane.d)[1] @ K_inv
                 A, b = np.empty((k + 2, k + 2)), np.empty(k + 2)
-                scale = _scale(r_alive[:n_r])
+                scale = _scale(r_alive[:n_ok])
                 if not _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, float(gain), f,
                                       (CAUCHY_SCALES * scale) ** 2, MAX_DIFFERENCE ** 2,
                                       free_idx, A, b):
