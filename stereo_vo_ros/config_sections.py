@@ -348,7 +348,7 @@ class RoadConfig:
         'and fuse the result with the filter estimate (rectified input; skipped without an '
         'admissible road plane or when the two disagree beyond gate_chi2). Measures the '
         'forward speed on fast roads, where road features track worst; off by default for '
-        'its cost, about 5-6 ms per 1241x376 pair (docs/tuning.md).',
+        'its cost, about 4 ms per 1241x376 pair (docs/tuning.md).',
         dynamic=True)
     motion: str = _f(
         'forward', 'What the road measures. forward: the forward speed (the alignment refines '
