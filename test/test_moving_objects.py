@@ -436,10 +436,11 @@ def test_road_vehicle_profile_keeps_its_speed_past_vehicles_that_keep_pace():
     """
     Highway seed 10: the profile keeps the speed next to buses that keep pace.
 
-    A bare stretch leaves few static features next to them; tracking at most 120 features
+    A bare stretch leaves few static features next to them; tracking at most 100-120 features
     leaves about ten. Within two pairs those said the car had lost most of its 23 m/s; a car's
     acceleration (vehicle.acceleration_std in the profile) does not allow that. The profile
-    keeps the speed with the default feature count and with 120.
+    keeps the speed where that failure shows, and tracks every pair with 120 features and with
+    the default count.
     """
     calib, frames = render_pairs('highway', 10, 30, n_frames=150)
     profile = load(REPO / 'config' / 'road_vehicle.yaml')
@@ -448,9 +449,14 @@ def test_road_vehicle_profile_keeps_its_speed_past_vehicles_that_keep_pace():
     # The failure the acceleration bound is for (min ratio 0.20). Whether a feature count shows
     # it hangs on exact tracks (with 200 features it showed with OpenCV's KLT, not with this
     # one; 100, 110 and 130 show it with the road alignment's exact bilinear samples, 120 not):
-    # one of two counts has to.
-    assert any(min(step_ratios(config.replace(**{'vehicle.acceleration_std': 0.0}), calib,
-                               frames)[0]) < 0.6 for config in sparse)
+    # one of two counts has to, and the bound must keep the speed there.
+    failing = [config for config in sparse
+               if min(step_ratios(config.replace(**{'vehicle.acceleration_std': 0.0}), calib,
+                                  frames)[0]) < 0.6]
+    assert failing
+    for config in failing:
+        ratios, _ = step_ratios(config, calib, frames)  # (a pair may have too few inliers)
+        assert np.all(np.abs(ratios - 1) < 0.1)
     for config in (sparse[1], profile):
         ratios, statuses = step_ratios(config, calib, frames)
         assert all(status is TrackingStatus.OK for status in statuses)

@@ -1,5 +1,6 @@
 """Direct road alignment: the plane of a stereo pair, the motion between pairs, the fusion."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -208,6 +209,15 @@ def test_compared_pixels_lie_on_a_fixed_lattice_inside_the_level(highway):
     assert len(ra._grids) == 2  # one full grid per level, whatever the first row
 
 
+def bilinear(planes, x, y):
+    """Return reference float64 bilinear samples (N, C) of planes (C, H, W) at pixels x, y."""
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    a, b = (x - x0)[:, None], (y - y0)[:, None]
+    grey = planes.transpose(1, 2, 0).astype(np.float64)
+    return (1 - b) * ((1 - a) * grey[y0, x0] + a * grey[y0, x0 + 1]) \
+        + b * ((1 - a) * grey[y0 + 1, x0] + a * grey[y0 + 1, x0 + 1])
+
+
 def test_levels_are_sampled_bilinearly_and_zero_where_they_cannot_be():
     """The kernel's samples are the bilinear interpolation (float64) of every channel."""
     from stereo_vo_ros.road.road_alignment import _sample
@@ -219,14 +229,62 @@ def test_levels_are_sampled_bilinearly_and_zero_where_they_cannot_be():
     v = v + row0
     out = np.full((len(u), 3), np.nan)
     _sample(img, u, v, row0, out)
-    x0, y0 = np.floor(u[:500]).astype(int), np.floor(v[:500] - row0).astype(int)
-    a, b = (u[:500] - x0)[:, None], (v[:500] - row0 - y0)[:, None]
-    grey = img.transpose(1, 2, 0).astype(np.float64)
-    expected = (1 - b) * ((1 - a) * grey[y0, x0] + a * grey[y0, x0 + 1]) \
-        + b * ((1 - a) * grey[y0 + 1, x0] + a * grey[y0 + 1, x0 + 1])
-    np.testing.assert_allclose(out[:500], expected, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out[:500], bilinear(img, u[:500], v[:500] - row0), rtol=0,
+                               atol=1e-9)
     # On or past the array's border (the 2 x 2 neighbourhood would leave it), or NaN: zeros.
     np.testing.assert_array_equal(out[500:], 0.0)
+
+
+def test_stereo_and_motion_kernels_sample_where_their_geometry_says():
+    """The right image at the plane's disparity through H; the current image where points go."""
+    from stereo_vo_ros.road.road_alignment import _stereo_residuals, _warp_road
+    rng = np.random.default_rng(5)
+    h, w, row0, n = 40, 60, 10.0, 400
+    tmpl = rng.uniform(0, 255, (n, 3))
+    # Stereo: disparity fb p . r, then H; about a fifth of the matches leave the image.
+    right = rng.uniform(0, 255, (2, h, w)).astype(np.float32)
+    us, vs = rng.uniform(1, 58, n), rng.uniform(row0 + 1, row0 + h - 2, n)
+    ray = np.ascontiguousarray(np.vstack([rng.normal(0, 0.3, n), rng.normal(0.2, 0.1, n),
+                                          np.ones(n)]))
+    p, fb = np.array([0.0, 0.6, 0.05]), 20.0
+    H = np.array([[1.0, 0.01, 0.3], [-0.01, 1.0, -0.2], [1e-4, 0.0, 1.0]])
+    r, sampled, idx = np.empty(n), np.empty((n, 2)), np.empty(n, np.int64)
+    m = _stereo_residuals(right, row0, H, us, vs, ray, tmpl, p, fb, 1.1, 2.0, r, sampled, idx)
+    q = H @ np.vstack([us - fb * (p @ ray), vs, np.ones(n)])
+    x, y = q[0] / q[2], q[1] / q[2] - row0
+    inside = (x > 0) & (x < w - 1) & (y > 0) & (y < h - 1)
+    assert n // 2 < m < n
+    np.testing.assert_array_equal(idx[:m], np.flatnonzero(inside))
+    expected = bilinear(right, x[inside], y[inside])
+    np.testing.assert_allclose(sampled[:m], expected, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r[:m], 1.1 * expected[:, 0] + 2.0 - tmpl[inside, 0], rtol=0,
+                               atol=1e-9)
+    # Motion: points moved by T and projected; dead ones (on entry, too near, or outside) get
+    # u = v = -1 and zeros, the others their samples and residuals.
+    cur = rng.uniform(0, 255, (3, h, w)).astype(np.float32)
+    f, cx, cy, min_z = 30.0, 30.0, 25.0, 2.0
+    X = np.ascontiguousarray(np.vstack([rng.uniform(-8, 8, n), rng.uniform(-2, 6, n),
+                                        rng.uniform(1, 12, n)]))
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.array([0.02, -0.03, 0.01]))[0]
+    T[:3, 3] = [0.1, -0.05, -0.4]
+    alive = np.ones(n, bool)
+    alive[:20] = False
+    proj, cur_s, r, r_alive = np.empty((5, n)), np.empty((n, 3)), np.empty(n), np.empty(n)
+    count = _warp_road(X, T, f, cx, cy, min_z, cur, row0, tmpl, 0.9, -3.0, proj, alive, cur_s,
+                       r, r_alive)
+    Xc = T[:3, :3] @ X + T[:3, 3:]
+    u, v = f * Xc[0] / Xc[2] + cx, f * Xc[1] / Xc[2] + cy
+    ok = (np.arange(n) >= 20) & (Xc[2] > min_z) & (u > 0) & (u < w - 1) & (v - row0 > 0) \
+        & (v - row0 < h - 1)
+    assert n // 5 < count == ok.sum() < n - 20
+    np.testing.assert_array_equal(alive, ok)
+    np.testing.assert_allclose(proj[:2, ok], [u[ok], v[ok]], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(cur_s[ok], bilinear(cur, u[ok], v[ok] - row0), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r[ok], 0.9 * cur_s[ok, 0] - 3.0 - tmpl[ok, 0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(r_alive[:count], r[ok])
+    np.testing.assert_array_equal(proj[:2, ~ok], -1.0)
+    np.testing.assert_array_equal(cur_s[~ok], 0.0)
 
 
 def test_fuse_is_a_kalman_update_of_the_measured_components():

@@ -512,6 +512,12 @@ def _exp_se3(delta: np.ndarray) -> np.ndarray:
 _IDENTITY = np.eye(3)
 
 
+def _into(plane: np.ndarray, out: np.ndarray) -> None:
+    """Make sure an OpenCV result asked into ``plane`` (``dst=``) is there (a copy if not)."""
+    if not np.shares_memory(plane, out):
+        plane[...] = out
+
+
 def _at_level(H: np.ndarray | None, scale: float) -> np.ndarray | None:
     """Return a homography of input pixels (3, 3) acting on the pixels of a level (or None)."""
     if H is None:
@@ -580,12 +586,13 @@ class RoadAligner:
             lp, rp = np.empty((3, *lo.shape), np.float32), np.empty((2, *ro.shape), np.float32)
             for src, planes in ((lo, lp), (ro, rp)):
                 if sigma > 0:
-                    cv2.GaussianBlur(src, (ksize, ksize), sigma, dst=planes[0])
+                    _into(planes[0], cv2.GaussianBlur(src, (ksize, ksize), sigma,
+                                                      dst=planes[0]))
                 else:
                     planes[0] = src
                 for c in range(1, len(planes)):
-                    cv2.Sobel(planes[0], cv2.CV_32F, int(c == 1), int(c == 2), dst=planes[c],
-                              ksize=3, scale=0.125)
+                    _into(planes[c], cv2.Sobel(planes[0], cv2.CV_32F, int(c == 1), int(c == 2),
+                                               dst=planes[c], ksize=3, scale=0.125))
             levels.append(RoadLevel(lp[0], lp, rp, 0.5 ** k, r0 // 2 ** k))
         return RoadImages(levels)
 
