@@ -340,9 +340,9 @@ def _track_level(img_i, img_j, prev, nxt, ok, level, top, use_guess, win, max_it
         # iterations), so no summation order (SIMD, per-column partial sums, the alignment of
         # the buffers) changes a result. Sums in float32 would, and one and two threads would
         # then differ.
-        a11 = np.float32(0.0)
-        a12 = np.float32(0.0)
-        a22 = np.float32(0.0)
+        a11 = 0.0
+        a12 = 0.0
+        a22 = 0.0
         if ix >= 0 and iy >= 0 and ix + win < w and iy + win < h:
             # Inside the image: the Scharr derivatives of the sampled window (sampling and
             # differencing are both linear: OpenCV's sampled derivative images).
