@@ -22,12 +22,14 @@ import sys
 import threading
 import time
 import types
+import weakref
 
 import numpy as np
 import pytest
 
 from stereo_vo_ros import Config, parallel, StereoOdometry
 from stereo_vo_ros.config import ConfigError
+from stereo_vo_ros.estimation.camera import StereoCalibration
 from stereo_vo_ros.parallel import auto_threads, ProcessWorker, Workers
 from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
 
@@ -448,3 +450,23 @@ def test_calibration_copies_stay_copies():
     first.K_left[0, 0] += 1.0
     assert second.K_left[0, 0] == calib.K_left[0, 0]
     assert pickle.loads(pickle.dumps(calib)).same_as(calib)
+
+
+def test_worker_looks_equal_calibrations_up_by_their_pickled_value(monkeypatch):
+    """In a worker, equal calibrations come back as one object; another value as another."""
+    from stereo_vo_ros.estimation import camera
+    calib = SequenceSpec.preset('urban', n_frames=2).calibration()
+    P_right = calib.right.P.copy()
+    P_right[0, 3] *= 1.1  # a longer baseline
+    other = StereoCalibration.from_projections(calib.left.P, P_right, *calib.size)
+    monkeypatch.setattr(camera, '_UNPICKLED', weakref.WeakValueDictionary())
+    first = pickle.loads(pickle.dumps(calib))
+    assert first is not calib and first.same_as(calib)
+    assert pickle.loads(pickle.dumps(copy.deepcopy(calib))) is first
+    assert pickle.loads(pickle.dumps((calib, [calib])))[0] is first
+    changed = copy.deepcopy(calib)
+    changed.K_left[0, 0] += 1.0
+    restored = pickle.loads(pickle.dumps(changed))
+    assert restored is not first and restored.K_left[0, 0] == calib.K_left[0, 0] + 1.0
+    assert pickle.loads(pickle.dumps(other)) is not first
+    assert pickle.loads(pickle.dumps(other)).same_as(other)

@@ -316,6 +316,79 @@ def test_detection_respects_max_features_buckets_and_min_distance():
     assert len(new) > 0 and near.min() >= cfg.min_distance_px - 1.0
 
 
+@pytest.mark.parametrize('size,margin', [((1241, 376), 10), ((640, 480), 0), ((333, 97), 7),
+                                         ((30, 20), 40)])
+def test_detection_searches_the_runs_of_chosen_buckets_through_their_masks(size, margin):
+    """Crops, masks and corners of ``detect_corners`` as a plain reading of its contract."""
+    from stereo_vo_ros.tracking import detection
+    w, h = size
+    rng = np.random.default_rng(w + margin)
+    cfg = config()
+    for rows, cols in ((4, 12), (3, 5), (1, 1)):
+        bcfg = BucketingConfig(rows=rows, cols=cols, roi_margin_px=margin)
+        x0, y0, x1, y1 = (margin, margin, w - margin, h - margin) if \
+            w - margin > margin and h - margin > margin else (0, 0, w, h)
+        xe = [x0 + (x1 - x0) * c / cols for c in range(cols + 1)]
+        ye = [y0 + (y1 - y0) * r / rows for r in range(rows + 1)]
+        for _ in range(20):
+            chosen = rng.random((rows, cols)) < rng.random()
+            expected = []
+            for r in range(rows):
+                c = 0
+                while c < cols:
+                    if chosen[r, c]:
+                        c1 = c
+                        while c1 < cols and chosen[r, c1]:
+                            c1 += 1
+                        expected.append(((int(np.floor(xe[c])), int(np.floor(ye[r])),
+                                          int(np.ceil(xe[c1])), int(np.ceil(ye[r + 1]))), c1 - c))
+                        c = c1
+                    else:
+                        c += 1
+            rects, counts = detection._regions(chosen, size, bcfg)
+            assert list(zip(rects, counts)) == expected
+    # The corners of each crop are goodFeaturesToTrack's with the mask of its run and of the
+    # discs around the existing features.
+    img = cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (0, 0), 1.5)
+    bcfg = BucketingConfig(rows=3, cols=5, roi_margin_px=margin)
+    chosen = np.array([[1, 1, 0, 1, 0], [0, 1, 1, 1, 1], [1, 0, 0, 0, 1]], bool)
+    existing = rng.uniform([0, 0], [w, h], (25, 2))
+    seen = []
+    original = cv2.goodFeaturesToTrack
+
+    def spy(crop, **kwargs):
+        seen.append((crop, kwargs['mask']))
+        return original(crop, **kwargs)
+
+    detection.cv2.goodFeaturesToTrack = spy
+    try:
+        detect_corners(img, existing, 40, cfg, bcfg, chosen)
+    finally:
+        detection.cv2.goodFeaturesToTrack = original
+    rects, _ = detection._regions(chosen, size, bcfg)
+    pad = cfg.block_size // 2 + 2
+    assert len(seen) == len(rects)
+    yy, xx = np.mgrid[0:h, 0:w]
+    far = np.ones((h, w), bool)
+    r = int(np.ceil(cfg.min_distance_px))
+    for x, y in np.round(existing).astype(int):
+        far &= (xx - x) ** 2 + (yy - y) ** 2 > r * r
+    for (crop, mask), (rx0, ry0, rx1, ry1) in zip(seen, rects):
+        cx0, cy0 = max(rx0 - pad, 0), max(ry0 - pad, 0)
+        cx1, cy1 = min(rx1 + pad, w), min(ry1 + pad, h)
+        assert np.array_equal(crop, img[cy0:cy1, cx0:cx1])
+        inside = np.zeros((h, w), bool)
+        inside[ry0:ry1, rx0:rx1] = True
+        want = (inside & far)[cy0:cy1, cx0:cx1]
+        # The discs are OpenCV's: their rim may differ from the exact circle by a pixel.
+        rim = np.abs(np.sqrt((xx[cy0:cy1, cx0:cx1, None] - np.round(existing)[:, 0]) ** 2
+                             + (yy[cy0:cy1, cx0:cx1, None] - np.round(existing)[:, 1]) ** 2)
+                     - r).min(axis=2) < 1.5
+        assert set(np.unique(mask)) <= {0, 255}
+        assert np.array_equal((mask > 0) | rim, want | rim)
+        assert not (mask > 0)[~inside[cy0:cy1, cx0:cx1]].any()
+
+
 # -- checks ----------------------------------------------------------------------------
 def test_disparity_constraint_rejects_vertical_mismatch_before_reverse_pass():
     calib = rectified_calib()

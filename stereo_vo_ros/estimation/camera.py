@@ -315,8 +315,15 @@ class StereoCalibration:
         return out.reshape(-1, 2).astype(np.float64)
 
     def __reduce__(self) -> tuple:
-        """Pickle by value (``_restore_calibration``: one object per value in a worker)."""
-        return (_restore_calibration, (tuple(getattr(self, f.name) for f in fields(self)),))
+        """
+        Pickle by value (``_restore_calibration``: one object per value in a worker).
+
+        The fields are pickled into one ``bytes`` value, which a worker process looks its
+        calibrations up by without unpickling them.
+        """
+        return (_restore_calibration, (pickle.dumps(tuple(getattr(self, f.name) for f in
+                                                          fields(self)),
+                                                    protocol=pickle.HIGHEST_PROTOCOL),))
 
     def same_as(self, other: 'StereoCalibration | None') -> bool:
         """Return True if ``other`` describes the same geometry (used to detect changes)."""
@@ -344,13 +351,11 @@ def share_unpickled_calibrations() -> None:
         _UNPICKLED = weakref.WeakValueDictionary()
 
 
-def _restore_calibration(values: tuple) -> StereoCalibration:
-    """Return the calibration of ``values`` (its fields in order); see ``_UNPICKLED``."""
-    if _UNPICKLED is None:
-        return StereoCalibration(*values)
-    key = pickle.dumps(values, protocol=pickle.HIGHEST_PROTOCOL)
-    calib = _UNPICKLED.get(key)
+def _restore_calibration(value: bytes) -> StereoCalibration:
+    """Return the calibration of ``value`` (its fields in order, pickled); see ``_UNPICKLED``."""
+    calib = None if _UNPICKLED is None else _UNPICKLED.get(value)
     if calib is None:
-        calib = StereoCalibration(*values)
-        _UNPICKLED[key] = calib
+        calib = StereoCalibration(*pickle.loads(value))
+        if _UNPICKLED is not None:
+            _UNPICKLED[value] = calib
     return calib

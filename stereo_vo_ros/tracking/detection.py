@@ -88,20 +88,39 @@ def _regions(chosen: np.ndarray, size: tuple[int, int], bcfg: BucketingConfig
     w, h = size
     if not bcfg.enabled:
         return [(0, 0, w, h)], [1]
-    m = bcfg.roi_margin_px
-    x0, y0, x1, y1 = m, m, w - m, h - m
+    x_lo, x_hi, y_lo, y_hi = _bucket_edges(w, h, bcfg.rows, bcfg.cols, bcfg.roi_margin_px)
+    rects, counts = [], []
+    for r, row in enumerate(chosen.tolist()):  # a few rows of a few dozen buckets
+        c, n = 0, len(row)
+        while c < n:
+            if not row[c]:
+                c += 1
+                continue
+            c0 = c
+            while c < n and row[c]:
+                c += 1
+            rects.append((x_lo[c0], y_lo[r], x_hi[c], y_hi[r + 1]))
+            counts.append(c - c0)
+    return rects, counts
+
+
+@functools.lru_cache(maxsize=8)
+def _bucket_edges(w: int, h: int, rows: int, cols: int, margin: int
+                  ) -> tuple[list[int], list[int], list[int], list[int]]:
+    """
+    Return the bucket grid's column and row edges (pixels), rounded down and up, as ints.
+
+    Column edge c lies at ``x0 + (x1 - x0) * c / cols`` over the region of interest (x0, x1)
+    (the whole image when the margin leaves nothing); ``_regions`` starts a run at the edge
+    rounded down and ends it at the edge rounded up.
+    """
+    x0, y0, x1, y1 = margin, margin, w - margin, h - margin
     if x1 <= x0 or y1 <= y0:
         x0, y0, x1, y1 = 0, 0, w, h
-    xe = x0 + (x1 - x0) * np.arange(bcfg.cols + 1) / bcfg.cols
-    ye = y0 + (y1 - y0) * np.arange(bcfg.rows + 1) / bcfg.rows
-    rects, counts = [], []
-    for r in np.flatnonzero(chosen.any(axis=1)):
-        edges = np.diff(np.concatenate([[0], chosen[r].astype(np.int8), [0]]))
-        for c0, c1 in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
-            rects.append((int(math.floor(xe[c0])), int(math.floor(ye[r])),
-                          int(math.ceil(xe[c1])), int(math.ceil(ye[r + 1]))))
-            counts.append(int(c1 - c0))
-    return rects, counts
+    xe = x0 + (x1 - x0) * np.arange(cols + 1) / cols
+    ye = y0 + (y1 - y0) * np.arange(rows + 1) / rows
+    return (np.floor(xe).astype(int).tolist(), np.ceil(xe).astype(int).tolist(),
+            np.floor(ye).astype(int).tolist(), np.ceil(ye).astype(int).tolist())
 
 
 def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -209,9 +228,7 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
     found, ranks = [], []
     for (x0, y0, x1, y1), (cx0, cy0, cx1, cy1), count in zip(rects, crops, counts):
         mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
-        mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255
-        if free is not None:
-            mask &= free[cy0:cy1, cx0:cx1]
+        mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255 if free is None else free[y0:y1, x0:x1]
         limit = need if not bcfg.enabled else 2 * count * bcfg.max_per_bucket
         corners = cv2.goodFeaturesToTrack(
             img[cy0:cy1, cx0:cx1], maxCorners=int(limit), qualityLevel=cfg.quality_level,
