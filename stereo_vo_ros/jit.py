@@ -3,12 +3,12 @@ Options and small linear algebra shared by the kernels compiled with Numba.
 
 The package's per-point loops that NumPy would run as many small array operations (the affine
 refinement, the KLT gradient matrices of the aperture checks, the rig refinement's row
-couplings and bundle adjustment, the road alignment's steps, the estimator's transfer to pixels)
-are compiled with ``kernel`` (``numba.njit`` with ``JIT``). The kernels the pipeline calls are
-compiled as their module is imported, for explicit signatures (compiling takes 20-40 s
-once on two cores; later imports load the on-disk cache in ``__pycache__``), so no pair, and no
-job of the worker process, waits for the compiler. They release the GIL, so a helper thread runs
-them next to the caller.
+couplings and bundle adjustment, the road alignment's steps, the estimator's transfer to pixels,
+the Shi-Tomasi detection) are compiled with ``kernel`` (``numba.njit`` with ``JIT``). The
+kernels the pipeline calls are compiled as their module is imported, for explicit signatures
+(compiling takes 20-40 s once on two cores; later imports load the on-disk cache in
+``__pycache__``), so no pair, and no job of the worker process, waits for the compiler. They
+release the GIL, so a helper thread runs them next to the caller.
 """
 
 from __future__ import annotations

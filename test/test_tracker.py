@@ -347,46 +347,168 @@ def test_detection_searches_the_runs_of_chosen_buckets_through_their_masks(size,
                         c += 1
             rects, counts = detection._regions(chosen, size, bcfg)
             assert list(zip(rects, counts)) == expected
-    # The corners of each crop are goodFeaturesToTrack's with the mask of its run and of the
-    # discs around the existing features.
+    # Each crop is searched inside its run, away from the existing features, and its corners
+    # are goodFeaturesToTrack's with that mask.
     img = cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (0, 0), 1.5)
     bcfg = BucketingConfig(rows=3, cols=5, roi_margin_px=margin)
     chosen = np.array([[1, 1, 0, 1, 0], [0, 1, 1, 1, 1], [1, 0, 0, 0, 1]], bool)
     existing = rng.uniform([0, 0], [w, h], (25, 2))
     seen = []
-    original = cv2.goodFeaturesToTrack
+    original = detection.shi_tomasi
 
-    def spy(crop, **kwargs):
-        seen.append((crop, kwargs['mask']))
-        return original(crop, **kwargs)
+    def spy(img, crop, rect, free, *args):
+        corners = original(img, crop, rect, free, *args)
+        seen.append((crop, rect, free, args, corners))
+        return corners
 
-    detection.cv2.goodFeaturesToTrack = spy
+    detection.shi_tomasi = spy
     try:
         detect_corners(img, existing, 40, cfg, bcfg, chosen)
     finally:
-        detection.cv2.goodFeaturesToTrack = original
-    rects, _ = detection._regions(chosen, size, bcfg)
+        detection.shi_tomasi = original
+    rects, counts = detection._regions(chosen, size, bcfg)
     pad = cfg.block_size // 2 + 2
-    assert len(seen) == len(rects)
+    assert [rect for _, rect, *_ in seen] == rects
     yy, xx = np.mgrid[0:h, 0:w]
     far = np.ones((h, w), bool)
     r = int(np.ceil(cfg.min_distance_px))
     for x, y in np.round(existing).astype(int):
         far &= (xx - x) ** 2 + (yy - y) ** 2 > r * r
-    for (crop, mask), (rx0, ry0, rx1, ry1) in zip(seen, rects):
-        cx0, cy0 = max(rx0 - pad, 0), max(ry0 - pad, 0)
-        cx1, cy1 = min(rx1 + pad, w), min(ry1 + pad, h)
-        assert np.array_equal(crop, img[cy0:cy1, cx0:cx1])
-        inside = np.zeros((h, w), bool)
-        inside[ry0:ry1, rx0:rx1] = True
-        want = (inside & far)[cy0:cy1, cx0:cx1]
-        # The discs are OpenCV's: their rim may differ from the exact circle by a pixel.
-        rim = np.abs(np.sqrt((xx[cy0:cy1, cx0:cx1, None] - np.round(existing)[:, 0]) ** 2
-                             + (yy[cy0:cy1, cx0:cx1, None] - np.round(existing)[:, 1]) ** 2)
-                     - r).min(axis=2) < 1.5
-        assert set(np.unique(mask)) <= {0, 255}
-        assert np.array_equal((mask > 0) | rim, want | rim)
-        assert not (mask > 0)[~inside[cy0:cy1, cx0:cx1]].any()
+    # The discs are OpenCV's: their rim may differ from the exact circle by a pixel.
+    rim = np.abs(np.sqrt((xx[..., None] - np.round(existing)[:, 0]) ** 2
+                         + (yy[..., None] - np.round(existing)[:, 1]) ** 2) - r).min(axis=2) < 1.5
+    for ((cx0, cy0, cx1, cy1), (rx0, ry0, rx1, ry1), free, args, corners), count in zip(
+            seen, counts):
+        assert (cx0, cy0, cx1, cy1) == (max(rx0 - pad, 0), max(ry0 - pad, 0), min(rx1 + pad, w),
+                                        min(ry1 + pad, h))
+        assert args == (2 * count * bcfg.max_per_bucket, cfg.quality_level, cfg.min_distance_px,
+                        cfg.block_size)
+        inside = (slice(ry0, ry1), slice(rx0, rx1))
+        assert np.array_equal((free[inside] > 0) | rim[inside], far[inside] | rim[inside])
+        mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
+        mask[ry0 - cy0:ry1 - cy0, rx0 - cx0:rx1 - cx0] = free[inside]
+        expected = cv2.goodFeaturesToTrack(
+            img[cy0:cy1, cx0:cx1], maxCorners=args[0], qualityLevel=cfg.quality_level,
+            minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
+        assert np.array_equal(corners, np.zeros((0, 2), np.float32) if expected is None else
+                              expected.reshape(-1, 2))
+
+
+def _shi_tomasi_cases(rng, h, w, n, interior_share=0.7):
+    """Random crops, runs, keep-away masks and settings of ``detection.shi_tomasi``."""
+    from stereo_vo_ros.tracking.detection import NOTHING_BLOCKED
+    for case in range(n):
+        block = int(rng.choice([3, 4, 5, 7, 8, 11]))
+        reach = block // 2 + 2
+        if rng.random() < interior_share:  # sums inside the crop: the package's kernel
+            rx0 = int(rng.integers(reach, w // 2))
+            ry0 = int(rng.integers(reach, h // 2))
+            rx1 = int(rng.integers(rx0 + 1, w - reach + 1))
+            ry1 = int(rng.integers(ry0 + 1, h - reach + 1))
+            grow = int(rng.integers(0, 3))
+            crop = (max(rx0 - reach - grow, 0), ry0 - reach, min(rx1 + reach + grow, w),
+                    ry1 + reach)
+        else:  # near the image's edge: OpenCV's function
+            rx0, ry0 = int(rng.integers(0, 12)), int(rng.integers(0, 12))
+            rx1, ry1 = int(rng.integers(rx0 + 1, w + 1)), int(rng.integers(ry0 + 1, h + 1))
+            crop = (max(rx0 - 2, 0), max(ry0 - 2, 0), min(rx1 + 2, w), min(ry1 + 2, h))
+        free = NOTHING_BLOCKED
+        if rng.random() < 0.5:
+            free = np.full((h, w), 255, np.uint8)
+            for _ in range(6):
+                cv2.circle(free, (int(rng.integers(0, w)), int(rng.integers(0, h))),
+                           int(rng.integers(3, 30)), 0, -1)
+        yield (crop, (rx0, ry0, rx1, ry1), free, int(rng.choice([1, 5, 50, 1000])),
+               float(rng.choice([0.001, 0.01, 0.1, 0.5])), float(rng.choice([1.0, 2.5, 15.0])),
+               block)
+
+
+def _opencv_corners(img, crop, rect, free, max_corners, quality, min_distance, block):
+    cx0, cy0, cx1, cy1 = crop
+    rx0, ry0, rx1, ry1 = rect
+    mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
+    mask[ry0 - cy0:ry1 - cy0, rx0 - cx0:rx1 - cx0] = free[ry0:ry1, rx0:rx1] if free.size else 255
+    corners = cv2.goodFeaturesToTrack(img[cy0:cy1, cx0:cx1], maxCorners=max_corners,
+                                      qualityLevel=quality, minDistance=min_distance, mask=mask,
+                                      blockSize=block)
+    return np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2)
+
+
+def test_shi_tomasi_finds_opencvs_corners_on_camera_like_images():
+    """On textured images the package's Shi-Tomasi gives goodFeaturesToTrack's corners."""
+    from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
+    from stereo_vo_ros.tracking.detection import shi_tomasi
+    rng = np.random.default_rng(7)
+    frame = next(iter(SyntheticSequence(SequenceSpec.preset('urban', n_frames=2))))
+    rendered = frame.left[100:300, 300:640].copy()
+    images = [rendered] + [cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8),
+                                            (0, 0), sigma) for sigma in (0.7, 1.5, 3.0)]
+    n_corners = 0
+    for img in images:
+        for args in _shi_tomasi_cases(rng, *img.shape, 60):
+            expected = _opencv_corners(img, *args)
+            assert np.array_equal(shi_tomasi(img, *args), expected), args[1:]
+            n_corners += len(expected)
+    assert n_corners > 2000
+
+
+def _shi_tomasi_reference(img, crop, rect, free, max_corners, quality, min_distance, block):
+    """``shi_tomasi``'s documented steps in NumPy, with the sums in int64 (exact)."""
+    cx0, cy0, cx1, cy1 = crop
+    rx0, ry0, rx1, ry1 = rect
+    p = np.pad(img[cy0:cy1, cx0:cx1].astype(np.int64), 1, mode='reflect')
+    gx = (p[:-2, 2:] + 2 * p[1:-1, 2:] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[1:-1, :-2] + p[2:, :-2])
+    gy = (p[2:, :-2] + 2 * p[2:, 1:-1] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[:-2, 1:-1] + p[:-2, 2:])
+    r0 = block // 2
+
+    def box(a):
+        a = np.pad(a, ((r0, block - 1 - r0), (r0, block - 1 - r0)), mode='reflect')
+        c = np.pad(a, ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+        return c[block:, block:] - c[:-block, block:] - c[block:, :-block] + c[:-block, :-block]
+
+    a, b, c = box(gx * gx).astype(float), box(gx * gy).astype(float), box(gy * gy).astype(float)
+    d = 0.5 * (a - c)
+    eig = 0.5 * (a + c) - np.sqrt(d * d + b * b)
+    h, w = eig.shape
+    mask = np.zeros((h, w), bool)
+    mask[ry0 - cy0:ry1 - cy0, rx0 - cx0:rx1 - cx0] = free[ry0:ry1, rx0:rx1] > 0 if free.size \
+        else True
+    threshold = (eig[mask].max() if mask.any() else 0.0) * quality
+    counted = np.pad(np.where(eig > threshold, eig, 0.0), 1, constant_values=-np.inf)
+    most = np.max([counted[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy in (-1, 0, 1)
+                   for dx in (-1, 0, 1)], axis=0)
+    cand = mask & (counted[1:-1, 1:-1] != 0) & (counted[1:-1, 1:-1] == most)
+    cand[[0, -1], :] = cand[:, [0, -1]] = False
+    ys, xs = np.nonzero(cand)
+    order = np.lexsort((-(ys * w + xs), -eig[ys, xs]))
+    kept = []
+    for y, x in zip(ys[order], xs[order]):
+        if len(kept) < max_corners and all((x - u) ** 2 + (y - v) ** 2 >= min_distance ** 2
+                                           for u, v in kept):
+            kept.append((x, y))
+    return np.array(kept, np.float32).reshape(-1, 2)
+
+
+def test_shi_tomasi_follows_its_steps_where_values_tie():
+    """Checkerboards, stripes and blocks (many equal values): corners of the exact sums."""
+    from stereo_vo_ros.tracking.detection import shi_tomasi
+    rng = np.random.default_rng(3)
+    h, w = 90, 120
+    yy, xx = np.mgrid[0:h, 0:w]
+    images = [(((yy // s + xx // s) % 2) * 200).astype(np.uint8) for s in (2, 3, 8)]
+    images.append(np.tile((127 + 120 * np.sin(np.arange(w) / 2.5)).astype(np.uint8), (h, 1)))
+    blocks = np.zeros((h, w), np.uint8)
+    for _ in range(10):
+        x0, y0 = rng.integers(0, w - 10), rng.integers(0, h - 10)
+        blocks[y0:y0 + rng.integers(3, 30), x0:x0 + rng.integers(3, 30)] = rng.integers(0, 256)
+    images += [blocks, np.full((h, w), 90, np.uint8)]
+    n_corners = 0
+    for img in images:
+        for args in _shi_tomasi_cases(rng, h, w, 40, interior_share=1.0):
+            expected = _shi_tomasi_reference(img, *args)
+            assert np.array_equal(shi_tomasi(img, *args), expected), args[1:]
+            n_corners += len(expected)
+    assert n_corners > 1000
 
 
 # -- checks ----------------------------------------------------------------------------

@@ -1,10 +1,10 @@
 """
 Detection of new corners where the stereo tracker lacks features (Huang et al., replenishment).
 
-Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) are searched only in the buckets of the
-bucketing grid that lack features (``plan_detection``), away from the features already tracked,
-and spread over the grid (``detect_corners``). Positions are raw pixels (x right, y down) of the
-image as given.
+Shi-Tomasi corners (``shi_tomasi``: the corners of ``cv2.goodFeaturesToTrack``, in a compiled
+kernel that releases the GIL) are searched only in the buckets of the bucketing grid that lack
+features (``plan_detection``), away from the features already tracked, and spread over the grid
+(``detect_corners``). Positions are raw pixels (x right, y down) of the image as given.
 """
 
 from __future__ import annotations
@@ -14,11 +14,13 @@ import math
 from typing import Callable
 
 import cv2
+import numba
 import numpy as np
 
 from . import bucketing
 from .klt_checks import flow_edge_ratio
 from ..config import BucketingConfig, TrackerConfig
+from ..jit import kernel, readonly
 
 #: Detection searches buckets whose free slots add up to this many times the features needed.
 DETECTION_OVERSAMPLING = 1.0
@@ -172,6 +174,235 @@ def _free_mask(points: np.ndarray, shape: tuple[int, int], radius: float,
     return free
 
 
+#: ``shi_tomasi``'s keep-away mask when there is nothing to keep away from (0 x 0).
+NOTHING_BLOCKED = np.zeros((0, 0), np.uint8)
+
+
+def shi_tomasi(img: np.ndarray, crop: tuple[int, int, int, int],
+               rect: tuple[int, int, int, int], free: np.ndarray, max_corners: int,
+               quality_level: float, min_distance_px: float, block_size: int) -> np.ndarray:
+    """
+    Shi-Tomasi corners of the ``crop`` of ``img``, inside ``rect`` where ``free`` allows.
+
+    The corners of ``cv2.goodFeaturesToTrack`` on the crop with the mask of ``rect`` and
+    ``free`` (3x3 Sobel gradients, no Harris), by its steps in a compiled kernel
+    (``_shi_tomasi``): the smallest eigenvalue of each pixel's gradient matrix, summed over a
+    ``block_size`` square; the largest in the mask times ``quality_level`` as the threshold; the
+    3x3 maxima above it in the mask, off the crop's border, by value (ties: the later pixel, row
+    by row, first); each kept unless closer than ``min_distance_px`` to one kept before. The
+    gradient products are integers summed exactly and the eigenvalue is computed in float64,
+    where OpenCV rounds to float32 on the way: corners whose rounded values tie or nearly tie
+    (or sit at the threshold) may come in another order (on the KITTI clips' 1026 detection
+    calls, once: two corners 3e-6 apart swapped). Where the sums would reach past the crop's
+    edge (``rect`` within ``block_size // 2 + 2`` pixels of it: of the image's edge), for block
+    sizes outside [1, 31] (the kernel's sums are int32), ``min_distance_px`` below 1 or no
+    corner limit, OpenCV's function runs.
+
+    Parameters
+    ----------
+    img : np.ndarray
+        (H, W) uint8 grey image.
+    crop, rect : tuple
+        (x0, y0, x1, y1) pixel boxes of ``img`` (end exclusive), ``rect`` inside ``crop``:
+        the image the corners are detected in (its edges are OpenCV's borders), and the part
+        of it they may lie in.
+    free : np.ndarray
+        (H, W) uint8, non-zero where corners may lie; ``NOTHING_BLOCKED``: everywhere.
+    max_corners, quality_level, min_distance_px, block_size
+        As ``cv2.goodFeaturesToTrack``'s ``maxCorners``, ``qualityLevel``, ``minDistance``
+        and ``blockSize``.
+
+    Returns
+    -------
+    np.ndarray
+        (M, 2) float32 corner positions (pixels, x right, y down) in the crop, best first.
+
+    """
+    cx0, cy0, cx1, cy1 = crop
+    rx0, ry0, rx1, ry1 = rect
+    reach = block_size // 2 + 2  # the sums' reach past a candidate's neighbour, and Sobel's
+    inside = (rx0 - reach >= cx0 and ry0 - reach >= cy0 and rx1 + reach <= cx1
+              and ry1 + reach <= cy1)
+    if rx1 <= rx0 or ry1 <= ry0:
+        return np.zeros((0, 2), np.float32)
+    if not inside or max_corners <= 0 or min_distance_px < 1 or not 1 <= block_size <= 31:
+        mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
+        mask[ry0 - cy0:ry1 - cy0, rx0 - cx0:rx1 - cx0] = \
+            255 if not free.size else free[ry0:ry1, rx0:rx1]
+        corners = cv2.goodFeaturesToTrack(
+            img[cy0:cy1, cx0:cx1], maxCorners=max_corners, qualityLevel=quality_level,
+            minDistance=min_distance_px, mask=mask, blockSize=block_size)
+        return np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2)
+    out = np.empty((max_corners, 2), np.float32)
+    n = _shi_tomasi(np.ascontiguousarray(img, np.uint8), cx0, cy0, cx1, cy1, rx0, ry0, rx1, ry1,
+                    np.ascontiguousarray(free, np.uint8), int(block_size),
+                    float(quality_level), float(min_distance_px), out)
+    return out[:n]
+
+
+_INT = numba.types.int64
+
+
+@kernel(_INT(readonly(numba.types.uint8, 2), _INT, _INT, _INT, _INT, _INT, _INT, _INT, _INT,
+             readonly(numba.types.uint8, 2), _INT, numba.types.float64, numba.types.float64,
+             numba.types.Array(numba.types.float32, 2, 'C')))
+def _shi_tomasi(img, cx0, cy0, cx1, cy1, rx0, ry0, rx1, ry1, free, block, quality,
+                min_distance, out):
+    """
+    Write the corners of ``shi_tomasi`` to ``out`` (at most its rows); return their number.
+
+    Image boxes as there; the sums' pixels must lie inside the crop (``shi_tomasi`` checks).
+    """
+    w = cx1 - cx0
+    # 1. Smallest eigenvalues on the rect grown by a pixel (the candidates' neighbours):
+    #    products of the 3x3 Sobel gradients (integers: exact), summed along each row over the
+    #    block, then down the columns as a running sum. OpenCV's scale factor is left out: it
+    #    changes no comparison below.
+    r0 = block // 2
+    ex0, ey0 = rx0 - 1, ry0 - 1
+    nx, ny = rx1 - rx0 + 2, ry1 - ry0 + 2
+    nr, nc = ny + block - 1, nx + block - 1
+    xs, ys = ex0 - r0, ey0 - r0
+    hxx = np.empty((nr, nx), np.int32)
+    hxy = np.empty((nr, nx), np.int32)
+    hyy = np.empty((nr, nx), np.int32)
+    pxx = np.empty(nc, np.int32)
+    pxy = np.empty(nc, np.int32)
+    pyy = np.empty(nc, np.int32)
+    for i in range(nr):
+        a = img[ys + i - 1, xs - 1:xs + nc + 1]
+        b = img[ys + i, xs - 1:xs + nc + 1]
+        c = img[ys + i + 1, xs - 1:xs + nc + 1]
+        for j in range(nc):
+            gx = (np.int32(a[j + 2]) + 2 * np.int32(b[j + 2]) + np.int32(c[j + 2])) - (
+                np.int32(a[j]) + 2 * np.int32(b[j]) + np.int32(c[j]))
+            gy = (np.int32(c[j]) + 2 * np.int32(c[j + 1]) + np.int32(c[j + 2])) - (
+                np.int32(a[j]) + 2 * np.int32(a[j + 1]) + np.int32(a[j + 2]))
+            pxx[j] = gx * gx
+            pxy[j] = gx * gy
+            pyy[j] = gy * gy
+        oxx, oxy, oyy = hxx[i], hxy[i], hyy[i]
+        for j in range(nx):  # (a loop: slice assignments take longer here)
+            oxx[j] = pxx[j]
+            oxy[j] = pxy[j]
+            oyy[j] = pyy[j]
+        for k in range(1, block):
+            qxx, qxy, qyy = pxx[k:], pxy[k:], pyy[k:]
+            for j in range(nx):
+                oxx[j] += qxx[j]
+                oxy[j] += qxy[j]
+                oyy[j] += qyy[j]
+    sxx = np.zeros(nx, np.int32)
+    sxy = np.zeros(nx, np.int32)
+    syy = np.zeros(nx, np.int32)
+    for i in range(block - 1):
+        axx, axy, ayy = hxx[i], hxy[i], hyy[i]
+        for j in range(nx):
+            sxx[j] += axx[j]
+            sxy[j] += axy[j]
+            syy[j] += ayy[j]
+    eig = np.empty((ny, nx), np.float64)
+    for y in range(ny):
+        last = y + block - 1
+        axx, axy, ayy = hxx[last], hxy[last], hyy[last]
+        for j in range(nx):
+            sxx[j] += axx[j]
+            sxy[j] += axy[j]
+            syy[j] += ayy[j]
+        e = eig[y]
+        for j in range(nx):
+            p, q, r = np.float64(sxx[j]), np.float64(sxy[j]), np.float64(syy[j])
+            d = 0.5 * (p - r)
+            e[j] = 0.5 * (p + r) - math.sqrt(d * d + q * q)
+        axx, axy, ayy = hxx[y], hxy[y], hyy[y]
+        for j in range(nx):
+            sxx[j] -= axx[j]
+            sxy[j] -= axy[j]
+            syy[j] -= ayy[j]
+    # 2. The threshold: the largest value in the mask times the quality level (0 without one).
+    limit = free.shape[0] > 0
+    top = -np.inf
+    for y in range(1, ny - 1):
+        e = eig[y, 1:nx - 1]
+        if limit:
+            f = free[ry0 + y - 1, rx0:rx1]
+            for x in range(nx - 2):
+                v = e[x] if f[x] != 0 else -np.inf
+                top = v if v > top else top
+        else:
+            for x in range(nx - 2):
+                top = e[x] if e[x] > top else top
+    threshold = (top if top > -np.inf else 0.0) * quality
+    # 3. Candidates in the mask, off the crop's border (never reached here), not below a
+    #    neighbour, where values at or below the threshold count as 0; later pixels first.
+    n_max = (ny - 2) * (nx - 2)
+    values = np.empty(n_max, np.float64)
+    where = np.empty(n_max, np.int64)
+    n = 0
+    if threshold >= 0.0:  # then: above the threshold and no neighbour larger
+        most = np.empty((ny, nx - 2), np.float64)
+        for y in range(ny):
+            left, mid, right = eig[y, :nx - 2], eig[y, 1:nx - 1], eig[y, 2:]
+            m = most[y]
+            for x in range(nx - 2):
+                v = left[x] if left[x] > mid[x] else mid[x]
+                m[x] = v if v > right[x] else right[x]
+        flag = np.empty(nx - 2, np.uint8)
+        for y in range(1, ny - 1):
+            e = eig[y, 1:nx - 1]
+            up, mid, down = most[y - 1], most[y], most[y + 1]
+            for x in range(nx - 2):
+                v = e[x]
+                flag[x] = (np.uint8(v > threshold) & np.uint8(v >= up[x])
+                           & np.uint8(v >= mid[x]) & np.uint8(v >= down[x]))
+            row = (ry0 + y - 1 - cy0) * w + rx0 - cx0
+            for x in range(nx - 2):
+                if flag[x] and (not limit or free[ry0 + y - 1, rx0 + x] != 0):
+                    values[n] = e[x]
+                    where[n] = row + x
+                    n += 1
+        values[:n] = values[:n][::-1].copy()
+        where[:n] = where[:n][::-1].copy()
+    else:
+        for y in range(ny - 2, 0, -1):
+            for x in range(nx - 2, 0, -1):
+                v = eig[y, x]
+                if not v > threshold or v == 0.0:
+                    continue
+                if limit and free[ry0 + y - 1, rx0 + x - 1] == 0:
+                    continue
+                peak = True
+                for yy in range(y - 1, y + 2):
+                    for xx in range(x - 1, x + 2):
+                        u = eig[yy, xx]
+                        if (u if u > threshold else 0.0) > v:
+                            peak = False
+                if peak:
+                    values[n] = v
+                    where[n] = (ry0 + y - 1 - cy0) * w + rx0 + x - 1 - cx0
+                    n += 1
+    # 4. By value (a stable sort keeps the later pixel first among equals), spaced out.
+    order = np.argsort(-values[:n], kind='mergesort')
+    kept = 0
+    d2 = min_distance * min_distance
+    for i in range(n):
+        if kept == out.shape[0]:
+            break
+        y, x = divmod(where[order[i]], w)
+        good = True
+        for j in range(kept):
+            dx = np.float32(x) - out[j, 0]
+            dy = np.float32(y) - out[j, 1]
+            if dx * dx + dy * dy < d2:
+                good = False
+                break
+        if good:
+            out[kept, 0] = np.float32(x)
+            out[kept, 1] = np.float32(y)
+            kept += 1
+    return kept
+
+
 def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: TrackerConfig,
                    bcfg: BucketingConfig, chosen: np.ndarray | None = None,
                    flow: Callable[[np.ndarray], np.ndarray] | None = None
@@ -224,18 +455,16 @@ def detect_corners(img: np.ndarray, existing: np.ndarray, need: int, cfg: Tracke
     rects, counts = _regions(chosen, (w, h), bcfg)
     crops = [(max(x0 - pad, 0), max(y0 - pad, 0), min(x1 + pad, w), min(y1 + pad, h))
              for x0, y0, x1, y1 in rects]
-    free = _free_mask(existing, (h, w), cfg.min_distance_px, crops) if len(existing) else None
+    free = (_free_mask(existing, (h, w), cfg.min_distance_px, crops) if len(existing) else
+            NOTHING_BLOCKED)
     found, ranks = [], []
-    for (x0, y0, x1, y1), (cx0, cy0, cx1, cy1), count in zip(rects, crops, counts):
-        mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
-        mask[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0] = 255 if free is None else free[y0:y1, x0:x1]
+    for rect, crop, count in zip(rects, crops, counts):
         limit = need if not bcfg.enabled else 2 * count * bcfg.max_per_bucket
-        corners = cv2.goodFeaturesToTrack(
-            img[cy0:cy1, cx0:cx1], maxCorners=int(limit), qualityLevel=cfg.quality_level,
-            minDistance=cfg.min_distance_px, mask=mask, blockSize=cfg.block_size)
-        if corners is None or len(corners) == 0:
+        corners = shi_tomasi(img, crop, rect, free, int(limit), cfg.quality_level,
+                             cfg.min_distance_px, cfg.block_size)
+        if not len(corners):
             continue
-        found.append(corners.reshape(-1, 2) + np.array([cx0, cy0], np.float32))
+        found.append(corners + np.array(crop[:2], np.float32))
         ranks.append(np.arange(len(corners)))
     if not found:
         return empty
