@@ -394,11 +394,11 @@ def test_detection_searches_the_runs_of_chosen_buckets_through_their_masks(size,
                               expected.reshape(-1, 2))
 
 
-def _shi_tomasi_cases(rng, h, w, n, interior_share=0.7):
+def _shi_tomasi_cases(rng, h, w, n, interior_share=0.7, blocks=(1, 2, 3, 4, 5, 7, 8, 11, 30, 31)):
     """Random crops, runs, keep-away masks and settings of ``detection.shi_tomasi``."""
     from stereo_vo_ros.tracking.detection import NOTHING_BLOCKED
     for case in range(n):
-        block = int(rng.choice([3, 4, 5, 7, 8, 11]))
+        block = int(rng.choice(blocks))
         reach = block // 2 + 2
         if rng.random() < interior_share:  # sums inside the crop: the package's kernel
             rx0 = int(rng.integers(reach, w // 2))
@@ -443,13 +443,27 @@ def test_shi_tomasi_finds_opencvs_corners_on_camera_like_images():
     rendered = frame.left[100:300, 300:640].copy()
     images = [rendered] + [cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8),
                                             (0, 0), sigma) for sigma in (0.7, 1.5, 3.0)]
-    n_corners = 0
+    n_corners = n_kernel = 0
     for img in images:
-        for args in _shi_tomasi_cases(rng, *img.shape, 60):
+        for args in _shi_tomasi_cases(rng, *img.shape, 80):
             expected = _opencv_corners(img, *args)
             assert np.array_equal(shi_tomasi(img, *args), expected), args[1:]
-            n_corners += len(expected)
-    assert n_corners > 2000
+            crop, (rx0, ry0, rx1, ry1), block = args[0], args[1], args[-1]
+            reach = block // 2 + 2
+            if 2 <= block and rx0 - reach >= crop[0] and ry0 - reach >= crop[1] \
+                    and rx1 + reach <= crop[2] and ry1 + reach <= crop[3]:
+                n_kernel += 1
+                n_corners += len(expected)
+    assert n_kernel > 150 and n_corners > 2000  # through the kernel, not OpenCV's fallback
+    # A keep-away mask of another size is refused; other image types go to OpenCV.
+    with pytest.raises(ValueError):
+        shi_tomasi(images[1], (0, 0, 160, 120), (20, 20, 60, 60), np.ones((50, 50), np.uint8),
+                   10, 0.01, 5.0, 7)
+    as_float = images[1].astype(np.float32)
+    assert np.array_equal(shi_tomasi(as_float, (0, 0, 160, 120), (20, 20, 60, 60),
+                                     np.ones((120, 160), np.uint8), 10, 0.01, 5.0, 7),
+                          _opencv_corners(as_float, (0, 0, 160, 120), (20, 20, 60, 60),
+                                          np.ones((120, 160), np.uint8), 10, 0.01, 5.0, 7))
 
 
 def _shi_tomasi_reference(img, crop, rect, free, max_corners, quality, min_distance, block):
@@ -504,7 +518,8 @@ def test_shi_tomasi_follows_its_steps_where_values_tie():
     images += [blocks, np.full((h, w), 90, np.uint8)]
     n_corners = 0
     for img in images:
-        for args in _shi_tomasi_cases(rng, h, w, 40, interior_share=1.0):
+        for args in _shi_tomasi_cases(rng, h, w, 40, interior_share=1.0,
+                                      blocks=(2, 3, 4, 5, 7, 8, 11, 30, 31)):
             expected = _shi_tomasi_reference(img, *args)
             assert np.array_equal(shi_tomasi(img, *args), expected), args[1:]
             n_corners += len(expected)

@@ -193,10 +193,12 @@ def shi_tomasi(img: np.ndarray, crop: tuple[int, int, int, int],
     gradient products are integers summed exactly and the eigenvalue is computed in float64,
     where OpenCV rounds to float32 on the way: corners whose rounded values tie or nearly tie
     (or sit at the threshold) may come in another order (on the KITTI clips' 1026 detection
-    calls, once: two corners 3e-6 apart swapped). Where the sums would reach past the crop's
-    edge (``rect`` within ``block_size // 2 + 2`` pixels of it: of the image's edge), for block
-    sizes outside [1, 31] (the kernel's sums are int32), ``min_distance_px`` below 1 or no
-    corner limit, OpenCV's function runs.
+    calls, once: two corners 3e-6 apart swapped). OpenCV's function runs where the sums would
+    reach past the crop's edge (``rect`` within ``block_size // 2 + 2`` pixels of it: of the
+    image's edge), for block sizes outside [2, 31] (the kernel's sums are int32; a 1-pixel
+    block has no corner in exact sums, OpenCV picks them from its rounding), for images that
+    are not uint8, a ``quality_level`` not above 0, ``min_distance_px`` below 1 or no corner
+    limit.
 
     Parameters
     ----------
@@ -217,7 +219,14 @@ def shi_tomasi(img: np.ndarray, crop: tuple[int, int, int, int],
     np.ndarray
         (M, 2) float32 corner positions (pixels, x right, y down) in the crop, best first.
 
+    Raises
+    ------
+    ValueError
+        ``free`` neither the image's size nor 0 x 0.
+
     """
+    if free.size and free.shape != img.shape[:2]:
+        raise ValueError(f'keep-away mask {free.shape} does not match the image {img.shape}')
     cx0, cy0, cx1, cy1 = crop
     rx0, ry0, rx1, ry1 = rect
     reach = block_size // 2 + 2  # the sums' reach past a candidate's neighbour, and Sobel's
@@ -225,7 +234,8 @@ def shi_tomasi(img: np.ndarray, crop: tuple[int, int, int, int],
               and ry1 + reach <= cy1)
     if rx1 <= rx0 or ry1 <= ry0:
         return np.zeros((0, 2), np.float32)
-    if not inside or max_corners <= 0 or min_distance_px < 1 or not 1 <= block_size <= 31:
+    if not inside or img.dtype != np.uint8 or max_corners <= 0 or not quality_level > 0 \
+            or min_distance_px < 1 or not 2 <= block_size <= 31:
         mask = np.zeros((cy1 - cy0, cx1 - cx0), np.uint8)
         mask[ry0 - cy0:ry1 - cy0, rx0 - cx0:rx1 - cx0] = \
             255 if not free.size else free[ry0:ry1, rx0:rx1]
@@ -233,8 +243,8 @@ def shi_tomasi(img: np.ndarray, crop: tuple[int, int, int, int],
             img[cy0:cy1, cx0:cx1], maxCorners=max_corners, qualityLevel=quality_level,
             minDistance=min_distance_px, mask=mask, blockSize=block_size)
         return np.zeros((0, 2), np.float32) if corners is None else corners.reshape(-1, 2)
-    out = np.empty((max_corners, 2), np.float32)
-    n = _shi_tomasi(np.ascontiguousarray(img, np.uint8), cx0, cy0, cx1, cy1, rx0, ry0, rx1, ry1,
+    out = np.empty((min(max_corners, (rx1 - rx0) * (ry1 - ry0)), 2), np.float32)
+    n = _shi_tomasi(np.ascontiguousarray(img), cx0, cy0, cx1, cy1, rx0, ry0, rx1, ry1,
                     np.ascontiguousarray(free, np.uint8), int(block_size),
                     float(quality_level), float(min_distance_px), out)
     return out[:n]
