@@ -265,8 +265,8 @@ def _shi_tomasi(img, cx0, cy0, cx1, cy1, rx0, ry0, rx1, ry1, free, block, qualit
     """
     w = cx1 - cx0
     # 1. Smallest eigenvalues on the rect grown by a pixel (the candidates' neighbours):
-    #    products of the 3x3 Sobel gradients (integers: exact), summed along each row over the
-    #    block, then down the columns as a running sum. OpenCV's scale factor is left out: it
+    #    products of the 3x3 Sobel gradients (integers: exact), summed over the block as running
+    #    sums along each row, then down the columns. OpenCV's scale factor is left out: it
     #    changes no comparison below.
     r0 = block // 2
     ex0, ey0 = rx0 - 1, ry0 - 1
@@ -292,16 +292,21 @@ def _shi_tomasi(img, cx0, cy0, cx1, cy1, rx0, ry0, rx1, ry1, free, block, qualit
             pxy[j] = gx * gy
             pyy[j] = gy * gy
         oxx, oxy, oyy = hxx[i], hxy[i], hyy[i]
-        for j in range(nx):  # (a loop: slice assignments take longer here)
-            oxx[j] = pxx[j]
-            oxy[j] = pxy[j]
-            oyy[j] = pyy[j]
-        for k in range(1, block):
-            qxx, qxy, qyy = pxx[k:], pxy[k:], pyy[k:]
-            for j in range(nx):
-                oxx[j] += qxx[j]
-                oxy[j] += qxy[j]
-                oyy[j] += qyy[j]
+        sa, sb, sc = np.int32(0), np.int32(0), np.int32(0)
+        for k in range(block - 1):
+            sa += pxx[k]
+            sb += pxy[k]
+            sc += pyy[k]
+        for j in range(nx):  # a running sum along the row
+            sa += pxx[j + block - 1]
+            sb += pxy[j + block - 1]
+            sc += pyy[j + block - 1]
+            oxx[j] = sa
+            oxy[j] = sb
+            oyy[j] = sc
+            sa -= pxx[j]
+            sb -= pxy[j]
+            sc -= pyy[j]
     sxx = np.zeros(nx, np.int32)
     sxy = np.zeros(nx, np.int32)
     syy = np.zeros(nx, np.int32)
