@@ -13,6 +13,19 @@ import numpy as np
 from ..config import BucketingConfig
 
 
+def region_of_interest(size: tuple[int, int], margin: int) -> tuple[int, int, int, int]:
+    """
+    Return the bucketed region (x0, y0, x1, y1) of a (width, height) image, pixels.
+
+    The image minus ``margin`` pixels on every side; the whole image when that leaves nothing.
+    """
+    width, height = size
+    x0, y0, x1, y1 = margin, margin, width - margin, height - margin
+    if x1 <= x0 or y1 <= y0:
+        return 0, 0, width, height
+    return x0, y0, x1, y1
+
+
 def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig) -> np.ndarray:
     """
     Return the bucket index of each point, -1 outside the region of interest.
@@ -32,11 +45,7 @@ def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig
 
     """
     points = np.asarray(points, np.float64).reshape(-1, 2)
-    width, height = size
-    m = cfg.roi_margin_px
-    x0, y0, x1, y1 = m, m, width - m, height - m
-    if x1 <= x0 or y1 <= y0:
-        x0, y0, x1, y1 = 0, 0, width, height
+    x0, y0, x1, y1 = region_of_interest(size, cfg.roi_margin_px)
     inside = (points[:, 0] >= x0) & (points[:, 0] < x1) & (points[:, 1] >= y0) & \
         (points[:, 1] < y1)
     col = np.floor((points[:, 0] - x0) * cfg.cols / (x1 - x0)).astype(np.int64)

@@ -113,12 +113,10 @@ def _bucket_edges(w: int, h: int, rows: int, cols: int, margin: int
     Return the bucket grid's column and row edges (pixels), rounded down and up, as ints.
 
     Column edge c lies at ``x0 + (x1 - x0) * c / cols`` over the region of interest (x0, x1)
-    (the whole image when the margin leaves nothing); ``_regions`` starts a run at the edge
-    rounded down and ends it at the edge rounded up.
+    (``bucketing.region_of_interest``); ``_regions`` starts a run at the edge rounded down and
+    ends it at the edge rounded up.
     """
-    x0, y0, x1, y1 = margin, margin, w - margin, h - margin
-    if x1 <= x0 or y1 <= y0:
-        x0, y0, x1, y1 = 0, 0, w, h
+    x0, y0, x1, y1 = bucketing.region_of_interest((w, h), margin)
     xe = x0 + (x1 - x0) * np.arange(cols + 1) / cols
     ye = y0 + (y1 - y0) * np.arange(rows + 1) / rows
     return (np.floor(xe).astype(int).tolist(), np.ceil(xe).astype(int).tolist(),
