@@ -12,7 +12,8 @@ image to its second (median of 20 calls; 6-10 ms seen here).
 Prints, per round, the median total ms per pair of every configuration on every clip (first
 pair left out, image loading excluded) and the reference; then, per configuration, the median
 over rounds and the verdict against the target (half of libviso2's time per pair), with the CPU
-time per pair of every thread and of the pipeline's worker process added, and that mean CPU
+time per pair of every thread and of the pipeline's worker process added and split by where it
+ran (the caller's thread, the process's other threads, the worker process), and that mean CPU
 time over the CPUs the process may use (pairs cannot take less on average: a configuration near
 it gains nothing from more overlap, only from less work); and per variant its extra ms and
 extra CPU over the first configuration, paired within rounds (median and range).
@@ -80,19 +81,23 @@ def reference_ms(clip: Clip) -> float:
     return float(np.median(times))
 
 
-def total_ms(clip: Clip, config: Config) -> tuple[float, float, float]:
+def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarray]:
     """
-    One run over the clip: median total ms per pair, CPU ms per pair, and the caller's share.
+    One run over the clip: ms per pair (median), CPU, the caller's share, where the CPU went.
 
     Pairs after the first count (the worker's start-up left out). The CPU time adds every thread
     of this process and the pipeline's worker process; the share is the CPU time of the
-    caller's thread alone (``process()``'s) over the mean total time per pair.
+    caller's thread alone (``process()``'s) over the mean total time per pair. Where: mean CPU
+    ms per pair of the caller's thread, of the process's other threads (the helper) and of the
+    worker process.
     """
     run = run_clip(clip, config)
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
     totals = [t['total'] for t in run['timings'][1:]]
-    caller = float(np.mean(run['cpu_ms'][1:])) / float(np.mean(totals))
-    return float(np.median(totals)), cpu, caller
+    own = float(np.mean(run['cpu_ms'][1:]))
+    worker = float(np.mean(run['worker_cpu_ms'][1:]))
+    where = np.array([own, cpu - own - worker, worker])
+    return float(np.median(totals)), cpu, own / float(np.mean(totals)), where
 
 
 def parse_config(items: list[str]) -> Config:
@@ -151,6 +156,7 @@ def main() -> int:
     totals = np.full((args.rounds, len(configs), len(clips)), np.nan)
     cpu = np.full_like(totals, np.nan)
     caller = np.full_like(totals, np.nan)
+    where = np.full((*totals.shape, 3), np.nan)  # caller's thread, other threads, worker
     reference = np.full(args.rounds, np.nan)
     print(f'\n{"round":>5s} {"reference ms":>12s}  ' + '  '.join(
         f'[{i}] {c.name[:14]:>14s}' for i in range(len(configs)) for c in clips))
@@ -159,7 +165,8 @@ def main() -> int:
         order = np.roll(np.arange(len(configs)), -r)
         for i in order:
             for k, clip in enumerate(clips):
-                totals[r, i, k], cpu[r, i, k], caller[r, i, k] = total_ms(clip, configs[i])
+                totals[r, i, k], cpu[r, i, k], caller[r, i, k], where[r, i, k] = total_ms(
+                    clip, configs[i])
         print(f'{r + 1:5d} {reference[r]:12.2f}  ' + '  '.join(
             f'{totals[r, i, k]:19.2f}' for i in range(len(configs))
             for k in range(len(clips))))
@@ -179,6 +186,11 @@ def main() -> int:
                          for k, clip in enumerate(clips))
         print(f"  [{i}] share of the time per pair the caller's thread was busy (its CPU time "
               f'over the total; near 100 %: it bounds the pair): {busy}')
+        split = '; '.join(
+            f'{clip.name} ' + ' / '.join(f'{v:.2f}' for v in np.median(where[:, i, k], axis=0))
+            for k, clip in enumerate(clips))
+        print(f"  [{i}] CPU per pair where it ran (the caller's thread / the process's other "
+              f'threads / the worker process, ms): {split}')
         floor = '; '.join(f'{clip.name} {np.median(cpu[:, i, k]) / cores:.2f} ms'
                           for k, clip in enumerate(clips))
         print(f'  [{i}] mean CPU per pair over the {cores} CPUs (pairs cannot take less on '
