@@ -238,8 +238,9 @@ def run_clip(clip: Clip, config: Config) -> dict:
         c0, p0, w0 = time.thread_time(), time.process_time(), vo.workers.worker_cpu_seconds()
         res = vo.process(frame)
         cpu.append((time.thread_time() - c0) * 1e3)
+        p1 = time.process_time()
         worker_cpu.append((vo.workers.worker_cpu_seconds() - w0) * 1e3)
-        all_cpu.append((time.process_time() - p0) * 1e3 + worker_cpu[-1])
+        all_cpu.append((p1 - p0) * 1e3 + worker_cpu[-1])
         if not res.accepted:
             raise RuntimeError(f'{clip.name}: frame at {frame.stamp_s} s was not accepted')
         poses.append(res.T_world_cam)

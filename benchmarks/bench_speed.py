@@ -88,8 +88,8 @@ def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarra
     Pairs after the first count (the worker's start-up left out). The CPU time adds every thread
     of this process and the pipeline's worker process; the share is the CPU time of the
     caller's thread alone (``process()``'s) over the mean total time per pair. Where: mean CPU
-    ms per pair of the caller's thread, of the process's other threads (the helper) and of the
-    worker process.
+    ms per pair of the caller's thread, of the process's other threads (the helper, and a worker
+    thread if any) and of the worker process.
     """
     run = run_clip(clip, config)
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
@@ -190,7 +190,7 @@ def main() -> int:
             f'{clip.name} ' + ' / '.join(f'{v:.2f}' for v in np.median(where[:, i, k], axis=0))
             for k, clip in enumerate(clips))
         print(f"  [{i}] CPU per pair where it ran (the caller's thread / the process's other "
-              f'threads / the worker process, ms): {split}')
+              f'threads / the worker process, ms; medians over rounds): {split}')
         floor = '; '.join(f'{clip.name} {np.median(cpu[:, i, k]) / cores:.2f} ms'
                           for k, clip in enumerate(clips))
         print(f'  [{i}] mean CPU per pair over the {cores} CPUs (pairs cannot take less on '
