@@ -327,6 +327,8 @@ class StereoCalibration:
 
     def same_as(self, other: 'StereoCalibration | None') -> bool:
         """Return True if ``other`` describes the same geometry (used to detect changes)."""
+        if other is self:
+            return True
         if other is None or other.kind != self.kind or other.size != self.size:
             return False
         return all(np.array_equal(a, b) for a, b in (

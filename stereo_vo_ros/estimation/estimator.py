@@ -295,9 +295,10 @@ class MotionEstimator:
         streak = cfg.ransac.max_outlier_streak
         if streak > 0 and cfg.ransac.enabled and corr.ids.size and self.outlier_streak:
             out_ids = [i for i, n in self.outlier_streak.items() if n >= streak]
-            left_out = np.isin(corr.ids[candidates], out_ids)
-            if np.count_nonzero(~left_out) >= max(cfg.pipeline.min_features, 4):
-                candidates = candidates[~left_out]  # else too few would be left: keep all
+            if out_ids:
+                left_out = np.isin(corr.ids[candidates], out_ids)
+                if np.count_nonzero(~left_out) >= max(cfg.pipeline.min_features, 4):
+                    candidates = candidates[~left_out]  # else too few would be left: keep all
         if candidates.size and cfg.bucketing.enabled:
             size = image_size or calib.size
             prio = corr.ages[candidates] if corr.ages.size else None

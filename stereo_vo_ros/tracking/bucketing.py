@@ -50,7 +50,9 @@ def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig
         (points[:, 1] < y1)
     col = np.floor((points[:, 0] - x0) * cfg.cols / (x1 - x0)).astype(np.int64)
     row = np.floor((points[:, 1] - y0) * cfg.rows / (y1 - y0)).astype(np.int64)
-    idx = np.clip(row, 0, cfg.rows - 1) * cfg.cols + np.clip(col, 0, cfg.cols - 1)
+    # np.minimum/np.maximum: np.clip's wrapper costs more than the clipping here.
+    idx = np.minimum(np.maximum(row, 0), cfg.rows - 1) * cfg.cols + \
+        np.minimum(np.maximum(col, 0), cfg.cols - 1)
     return np.where(inside, idx, -1)
 
 

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .lucas_kanade import ImagePyramid, track
+from .lucas_kanade import finite_rows, ImagePyramid, track
 from ..config import TRACKER_VARIANTS
 from ..errors import ConfigError
 from ..estimation.camera import StereoCalibration
@@ -139,7 +139,7 @@ def lk_pass(img_from: np.ndarray | ImagePyramid, img_to: np.ndarray | ImagePyram
     init = None
     if guess is not None:
         init = np.array(guess, np.float32).reshape(n, 2)
-        bad = ~np.all(np.isfinite(init), axis=1)
+        bad = ~finite_rows(init)
         init[bad] = src[bad]
     tracked, ok = track(pyr_from, pyr_to, src, init, int(levels), win, int(max_iterations),
                         KLT_EPSILON_PX)
@@ -154,10 +154,9 @@ def inside_image(pts: np.ndarray, size: tuple[int, int], border_px: float = BORD
     """Return (N,) bool: finite points at least ``border_px`` inside a (width, height) image."""
     pts = np.asarray(pts).reshape(-1, 2)
     w, h = size
-    with np.errstate(invalid='ignore'):
-        return (np.all(np.isfinite(pts), axis=1) & (pts[:, 0] >= border_px)
-                & (pts[:, 1] >= border_px) & (pts[:, 0] <= w - 1 - border_px)
-                & (pts[:, 1] <= h - 1 - border_px))
+    x, y = pts[:, 0], pts[:, 1]  # comparisons with NaN are False without a warning
+    return (finite_rows(pts) & (x >= border_px) & (y >= border_px) & (x <= w - 1 - border_px)
+            & (y <= h - 1 - border_px))
 
 
 def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: bool = False
@@ -371,7 +370,9 @@ def round_trip_error(start: np.ndarray, returned: np.ndarray) -> np.ndarray:
         (N,) float64 Euclidean distance (pixels); ``inf`` where an input is not finite.
 
     """
-    d = np.linalg.norm(np.asarray(start, np.float64) - np.asarray(returned, np.float64), axis=1)
+    d = np.asarray(start, np.float64) - np.asarray(returned, np.float64)
+    d *= d
+    d = np.sqrt(d[:, 0] + d[:, 1])  # the 2-norm of each row, as np.linalg.norm sums it
     return np.where(np.isfinite(d), d, np.inf)
 
 

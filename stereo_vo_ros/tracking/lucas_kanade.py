@@ -43,6 +43,12 @@ LANE_ROWS = 64
 MIN_EIGENVALUE = 1e-4
 
 
+def finite_rows(pts: np.ndarray) -> np.ndarray:
+    """Return (N,) bool: which rows of (N, 2) points are finite (two column tests, no reduce)."""
+    fin = np.isfinite(pts)
+    return fin[:, 0] & fin[:, 1]
+
+
 class ImagePyramid:
     """
     The Gaussian pyramid of one grey image, levels built on first use.
@@ -138,12 +144,12 @@ def track(src: ImagePyramid, dst: ImagePyramid, pts: np.ndarray, guess: np.ndarr
         raise ValueError(f'KLT window of {win} pixels')
     n = len(pts)
     prev = np.ascontiguousarray(pts, np.float32).reshape(n, 2)
-    ok = np.all(np.isfinite(prev), axis=1)
+    ok = finite_rows(prev)
     if guess is None:
         nxt = prev.copy()
     else:
         nxt = np.array(guess, np.float32).reshape(n, 2)
-        ok &= np.all(np.isfinite(nxt), axis=1)
+        ok &= finite_rows(nxt)
     if not n or not src.image.size:
         return nxt, ok & (src.image.size > 0)
     # OpenCV's limits of the termination criteria.

@@ -259,11 +259,12 @@ def transfer_from_stats(mean_from: np.ndarray, std_from: np.ndarray, ok_from: np
     ok = ok_from & ok_to
     if np.count_nonzero(ok) < MIN_WINDOWS:
         return None
-    log_ratio = np.sort(np.log(std_to[ok] / std_from[ok]))
-    q = len(log_ratio) // 4
-    if log_ratio[len(log_ratio) - 1 - q] - log_ratio[q] > MAX_LOG_SPREAD:
+    ratio = np.sort(std_to[ok] / std_from[ok])  # sorted once: the logarithm keeps the order
+    log_ratio = np.log(ratio)
+    q = len(ratio) // 4
+    if log_ratio[len(ratio) - 1 - q] - log_ratio[q] > MAX_LOG_SPREAD:
         return None
-    gain = _middle_mean(std_to[ok] / std_from[ok])
+    gain = float(ratio[q:len(ratio) - q].mean())  # ``_middle_mean`` of the sorted ratios
     if not GAIN_RANGE[0] <= gain <= GAIN_RANGE[1]:
         return None
     return gain, _middle_mean(mean_to[ok] - gain * mean_from[ok])

@@ -48,7 +48,7 @@ from .features import as_grey_u8, empty_correspondences, FeatureSet
 from .klt_checks import (aperture_checks, bicircular_error, BICIRCULAR_MODES, CheckSet,
                          disparity_constraint, disparity_in_range, lk_pass,
                          REVERSE_PYRAMID_LEVELS, round_trip_error)
-from .lucas_kanade import ImagePyramid
+from .lucas_kanade import finite_rows, ImagePyramid
 from .photometric import PhotometricMatcher
 from .replenish import ExpectedFlow, NewCorners, replenish, ReplenishJob
 from .stats import (CHECKS, PASSES, PendingTrack, STAGES, TrackerStats,  # noqa: F401
@@ -345,7 +345,7 @@ class StereoTracker:
             logger.warning('motion prior returned shapes %s and %s for %d features; ignored',
                            pred_l.shape, pred_r.shape, len(f))
             return None
-        bad = ~(np.all(np.isfinite(pred_l), axis=1) & np.all(np.isfinite(pred_r), axis=1))
+        bad = ~(finite_rows(pred_l) & finite_rows(pred_r))
         pred_l = np.where(bad[:, None], f.left_ideal, pred_l)
         pred_r = np.where(bad[:, None], f.right_ideal, pred_r)
         raw_l, raw_r = calib.distort_left(pred_l), calib.distort_right(pred_r)
