@@ -81,7 +81,7 @@ def reference_ms(clip: Clip) -> float:
     return float(np.median(times))
 
 
-def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarray]:
+def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarray, float]:
     """
     One run over the clip: ms per pair (median), CPU, the caller's share, where the CPU went.
 
@@ -89,15 +89,21 @@ def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarra
     of this process and the pipeline's worker process; the share is the CPU time of the
     caller's thread alone (``process()``'s) over the mean total time per pair. Where: mean CPU
     ms per pair of the caller's thread, of the process's other threads (the helper, and a worker
-    thread if any) and of the worker process.
+    thread if any) and of the worker process. Last, the median ms per pair up to its pose:
+    ``process()`` first runs the last pair's work after its pose (``after_pose``: the rig
+    refinement's update, on every ``rig.measure_every``-th pair, and taking the worker's new
+    corners), which a node runs after publishing that pose.
     """
     run = run_clip(clip, config)
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
     totals = [t['total'] for t in run['timings'][1:]]
+    to_pose = [t['total'] - last.get('after_pose', 0.0)
+               for last, t in zip(run['timings'][1:-1], run['timings'][2:])]
     own = float(np.mean(run['cpu_ms'][1:]))
     worker = float(np.mean(run['worker_cpu_ms'][1:]))
     where = np.array([own, cpu - own - worker, worker])
-    return float(np.median(totals)), cpu, own / float(np.mean(totals)), where
+    return (float(np.median(totals)), cpu, own / float(np.mean(totals)), where,
+            float(np.median(to_pose)))
 
 
 def parse_config(items: list[str]) -> Config:
@@ -157,6 +163,7 @@ def main() -> int:
     cpu = np.full_like(totals, np.nan)
     caller = np.full_like(totals, np.nan)
     where = np.full((*totals.shape, 3), np.nan)  # caller's thread, other threads, worker
+    to_pose = np.full_like(totals, np.nan)
     reference = np.full(args.rounds, np.nan)
     print(f'\n{"round":>5s} {"reference ms":>12s}  ' + '  '.join(
         f'[{i}] {c.name[:14]:>14s}' for i in range(len(configs)) for c in clips))
@@ -165,8 +172,8 @@ def main() -> int:
         order = np.roll(np.arange(len(configs)), -r)
         for i in order:
             for k, clip in enumerate(clips):
-                totals[r, i, k], cpu[r, i, k], caller[r, i, k], where[r, i, k] = total_ms(
-                    clip, configs[i])
+                (totals[r, i, k], cpu[r, i, k], caller[r, i, k], where[r, i, k],
+                 to_pose[r, i, k]) = total_ms(clip, configs[i])
         print(f'{r + 1:5d} {reference[r]:12.2f}  ' + '  '.join(
             f'{totals[r, i, k]:19.2f}' for i in range(len(configs))
             for k in range(len(clips))))
@@ -182,6 +189,10 @@ def main() -> int:
                          f'{totals[:, i, k].max():.2f}), CPU {np.median(cpu[:, i, k]):.2f} '
                          f'{verdict(med <= TARGET_TOTAL_MS)}')
         print(f'  [{i}] {name}: ' + '; '.join(cells))
+        posed = '; '.join(f'{clip.name} {np.median(to_pose[:, i, k]):.2f}'
+                          for k, clip in enumerate(clips))
+        print(f"  [{i}] ms per pair up to its pose, without the last pair's work after its pose "
+              f'(which a node runs after publishing; medians over rounds): {posed}')
         busy = '; '.join(f'{clip.name} {100 * np.median(caller[:, i, k]):.0f} %'
                          for k, clip in enumerate(clips))
         print(f"  [{i}] share of the time per pair the caller's thread was busy (its CPU time "
