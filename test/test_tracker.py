@@ -21,12 +21,14 @@ from stereo_vo_ros.config import BucketingConfig, TRACKER_VARIANTS, TrackerConfi
 from stereo_vo_ros.errors import ConfigError, ImageError
 from stereo_vo_ros.estimation.camera import CameraModel, StereoCalibration
 from stereo_vo_ros.parallel import inline, Workers
-from stereo_vo_ros.tracking import photometric
+from stereo_vo_ros.tracking import bucketing, photometric
 from stereo_vo_ros.tracking.adaptive_threshold import adaptive_threshold, bicircular_threshold
 from stereo_vo_ros.tracking.detection import detect_corners
 from stereo_vo_ros.tracking.klt_checks import (aperture_checks, bicircular_error, CheckSet,
                                                disparity_constraint, eigen_ratio,
-                                               flow_edge_ratio, gradient_matrix)
+                                               flow_edge_ratio, gradient_matrix, inside_image,
+                                               round_trip_error)
+from stereo_vo_ros.tracking.lucas_kanade import finite_rows
 from stereo_vo_ros.tracking.replenish import replenish, ReplenishJob
 from stereo_vo_ros.tracking.tracker import StereoTracker
 
@@ -307,7 +309,6 @@ def test_detection_respects_max_features_buckets_and_min_distance():
     assert 60 < len(pts) <= 120
     d = np.linalg.norm(pts[:, None] - pts[None], axis=2) + np.eye(len(pts)) * 1e9
     assert d.min() >= cfg.min_distance_px - 1.0
-    from stereo_vo_ros.tracking import bucketing
     assert bucketing.occupancy(pts, (W, H), bcfg).max() <= bcfg.max_per_bucket
     # Detection only where features are missing: nothing new near the existing ones.
     img = pair(M1)[0]
@@ -1427,3 +1428,31 @@ def test_window_stats_match_the_sampled_windows():
     assert window_stats((img,), (np.zeros((0, 2)),)) is None
     tiny = img[:2 * half, :50]  # no window of half side 6 fits
     assert window_stats((tiny,), (np.array([[25.0, 6.0]]),), half) is None
+
+
+def test_check_helpers_agree_with_their_numpy_forms():
+    """The checks' written-out forms give NumPy's values, NaN rows fail, no warning raised."""
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-20.0, 700.0, (300, 2))
+    b = a + rng.normal(0.0, 3.0, a.shape)
+    a[::7, 0], a[::11, 1], b[::13] = np.nan, np.inf, -np.inf
+    with np.errstate(invalid='ignore'):  # inf - inf: NaN, as before
+        norm = np.linalg.norm(a - b, axis=1)
+        assert np.array_equal(round_trip_error(a, b), np.where(np.isfinite(norm), norm, np.inf))
+    assert np.array_equal(finite_rows(a), np.all(np.isfinite(a), axis=1))
+    assert not finite_rows(a).all() and finite_rows(a).any()
+    with np.errstate(all='raise'):  # comparisons with NaN must not warn
+        inside = inside_image(a, (640, 480), 10.0)
+    with np.errstate(invalid='ignore'):
+        expected = (np.all(np.isfinite(a), axis=1) & (a[:, 0] >= 10) & (a[:, 1] >= 10)
+                    & (a[:, 0] <= 629) & (a[:, 1] <= 469))
+    assert np.array_equal(inside, expected) and inside.any() and not inside.all()
+    cfg = BucketingConfig()
+    pts = np.nan_to_num(a, nan=-5.0, posinf=900.0)
+    x0, y0, x1, y1 = bucketing.region_of_interest((640, 480), cfg.roi_margin_px)
+    col = np.floor((pts[:, 0] - x0) * cfg.cols / (x1 - x0)).astype(np.int64)
+    row = np.floor((pts[:, 1] - y0) * cfg.rows / (y1 - y0)).astype(np.int64)
+    inside = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
+    idx = np.clip(row, 0, cfg.rows - 1) * cfg.cols + np.clip(col, 0, cfg.cols - 1)
+    assert np.array_equal(bucketing.bucket_index(pts, (640, 480), cfg),
+                          np.where(inside, idx, -1))
