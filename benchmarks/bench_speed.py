@@ -11,7 +11,9 @@ image to its second (median of 20 calls; 6-10 ms seen here).
 
 Prints, per round, the median total ms per pair of every configuration on every clip (first
 pair left out, image loading excluded) and the reference; then, per configuration, the median
-over rounds and the verdict against the target (half of libviso2's time per pair), with the CPU
+over rounds and the verdict against the target (half of libviso2's time per pair), the median
+up to the pose (without the last pair's work after its pose, which a node runs after publishing:
+the rig refinement's update, on every second pair, and taking the worker's new corners), the CPU
 time per pair of every thread and of the pipeline's worker process added and split by where it
 ran (the caller's thread, the process's other threads, the worker process), and that mean CPU
 time over the CPUs the process may use (pairs cannot take less on average: a configuration near
@@ -98,7 +100,7 @@ def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarra
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
     totals = [t['total'] for t in run['timings'][1:]]
     to_pose = [t['total'] - last.get('after_pose', 0.0)
-               for last, t in zip(run['timings'][1:-1], run['timings'][2:])]
+               for last, t in zip(run['timings'][:-1], run['timings'][1:])]
     own = float(np.mean(run['cpu_ms'][1:]))
     worker = float(np.mean(run['worker_cpu_ms'][1:]))
     where = np.array([own, cpu - own - worker, worker])

@@ -1441,18 +1441,74 @@ def test_check_helpers_agree_with_their_numpy_forms():
         assert np.array_equal(round_trip_error(a, b), np.where(np.isfinite(norm), norm, np.inf))
     assert np.array_equal(finite_rows(a), np.all(np.isfinite(a), axis=1))
     assert not finite_rows(a).all() and finite_rows(a).any()
+    # The borders are inclusive: exactly on them is inside, the next float out is not.
+    edges = np.array([[10.0, 100.0], [np.nextafter(10.0, 0.0), 100.0], [629.0, 100.0],
+                      [np.nextafter(629.0, 1e9), 100.0], [100.0, 10.0],
+                      [100.0, np.nextafter(10.0, 0.0)], [100.0, 469.0],
+                      [100.0, np.nextafter(469.0, 1e9)]])
     with np.errstate(all='raise'):  # comparisons with NaN must not warn
+        assert inside_image(edges, (640, 480), 10.0).tolist() == [True, False] * 4
         inside = inside_image(a, (640, 480), 10.0)
     with np.errstate(invalid='ignore'):
         expected = (np.all(np.isfinite(a), axis=1) & (a[:, 0] >= 10) & (a[:, 1] >= 10)
                     & (a[:, 0] <= 629) & (a[:, 1] <= 469))
     assert np.array_equal(inside, expected) and inside.any() and not inside.all()
-    cfg = BucketingConfig()
-    pts = np.nan_to_num(a, nan=-5.0, posinf=900.0)
-    x0, y0, x1, y1 = bucketing.region_of_interest((640, 480), cfg.roi_margin_px)
-    col = np.floor((pts[:, 0] - x0) * cfg.cols / (x1 - x0)).astype(np.int64)
-    row = np.floor((pts[:, 1] - y0) * cfg.rows / (y1 - y0)).astype(np.int64)
-    inside = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
-    idx = np.clip(row, 0, cfg.rows - 1) * cfg.cols + np.clip(col, 0, cfg.cols - 1)
-    assert np.array_equal(bucketing.bucket_index(pts, (640, 480), cfg),
-                          np.where(inside, idx, -1))
+    # Buckets of 80 x 120 pixels (exact in binary): the index by whole divisions, points on
+    # every edge and just below it, outside on every side.
+    cfg = dataclasses.replace(BucketingConfig(), cols=8, rows=4, roi_margin_px=0)
+    xs = np.concatenate([np.arange(0.0, 641.0, 80.0), np.nextafter(np.arange(0.0, 641.0, 80.0),
+                                                                   -1.0), [-1e-9, 700.0]])
+    ys = np.concatenate([np.arange(0.0, 481.0, 120.0),
+                         np.nextafter(np.arange(0.0, 481.0, 120.0), -1.0), [-1e-9, 500.0]])
+    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] < 640) & (pts[:, 1] >= 0) & (pts[:, 1] < 480)
+    brute = (pts[:, 1] // 120).astype(int) * 8 + (pts[:, 0] // 80).astype(int)
+    got = bucketing.bucket_index(pts, (640, 480), cfg)
+    assert np.array_equal(got, np.where(inside, brute, -1))
+    assert set(got[inside].tolist()) == set(range(32)) and (got == -1).any()
+
+
+def _transfer_from_stats_sorted(mean_from, std_from, ok_from, mean_to, std_to, ok_to):
+    """``photometric.transfer_from_stats`` as it was written first (whole sorts)."""
+    ok = ok_from & ok_to
+    if np.count_nonzero(ok) < photometric.MIN_WINDOWS:
+        return None
+    log_ratio = np.sort(np.log(std_to[ok] / std_from[ok]))
+    q = len(log_ratio) // 4
+    if log_ratio[len(log_ratio) - 1 - q] - log_ratio[q] > photometric.MAX_LOG_SPREAD:
+        return None
+    gain = photometric._middle_mean(std_to[ok] / std_from[ok])
+    if not photometric.GAIN_RANGE[0] <= gain <= photometric.GAIN_RANGE[1]:
+        return None
+    return gain, photometric._middle_mean(mean_to[ok] - gain * mean_from[ok])
+
+
+def test_transfer_from_stats_takes_the_quartiles_of_the_logarithms():
+    """Selected quartiles give the sorted ones' map, also at the spread's limit in float32."""
+    rng = np.random.default_rng(5)
+    seen = set()
+    for case in range(600):
+        n = int(rng.integers(8, 150))
+        std_from = rng.uniform(3.0, 60.0, n).astype(np.float32)
+        spread = rng.choice([0.05, 0.19, 0.2, 0.21, 0.4]) * rng.uniform(0.9, 1.1)
+        std_to = (std_from * np.float32(rng.uniform(0.5, 2.0))
+                  * np.exp(rng.uniform(-spread, spread, n)).astype(np.float32))
+        mean_from = rng.uniform(20.0, 200.0, n).astype(np.float32)
+        mean_to = (mean_from * 1.1 + 5.0).astype(np.float32)
+        ok_from, ok_to = rng.random(n) > 0.1, rng.random(n) > 0.1
+        args = (mean_from, std_from, ok_from, mean_to, std_to, ok_to)
+        want = _transfer_from_stats_sorted(*args)
+        assert photometric.transfer_from_stats(*args) == want, case
+        seen.add(want is None)
+    assert seen == {True, False}
+
+
+def test_same_as_sees_either_camera_change():
+    """A calibration is the same as itself and its copy, not as one with another distortion."""
+    import copy
+    calib = distorted_calib()
+    assert calib.same_as(calib) and calib.same_as(copy.deepcopy(calib))
+    for side in ('left', 'right'):
+        other = copy.deepcopy(calib)
+        getattr(other, side).D[0] += 1e-3
+        assert not calib.same_as(other) and not other.same_as(calib), side

@@ -335,6 +335,7 @@ class StereoCalibration:
             (self.left.P, other.left.P), (self.right.P, other.right.P),
             (self.left.K, other.left.K), (self.right.K, other.right.K),
             (self.left.D, other.left.D) if self.left.D.shape == other.left.D.shape else (0, 1),
+            (self.right.D, other.right.D) if self.right.D.shape == other.right.D.shape else (0, 1),
             (self.left.R, other.left.R), (self.right.R, other.right.R)))
 
 

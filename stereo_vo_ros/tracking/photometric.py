@@ -259,12 +259,15 @@ def transfer_from_stats(mean_from: np.ndarray, std_from: np.ndarray, ok_from: np
     ok = ok_from & ok_to
     if np.count_nonzero(ok) < MIN_WINDOWS:
         return None
-    ratio = np.sort(std_to[ok] / std_from[ok])  # sorted once: the logarithm keeps the order
-    log_ratio = np.log(ratio)
-    q = len(ratio) // 4
-    if log_ratio[len(ratio) - 1 - q] - log_ratio[q] > MAX_LOG_SPREAD:
+    ratio = std_to[ok] / std_from[ok]
+    n = len(ratio)
+    q = n // 4
+    # The quartiles of the logarithms by selection, not a sort (float32 ``np.log`` need not keep
+    # the order of its inputs, so they are taken of the logarithms themselves).
+    log_ratio = np.partition(np.log(ratio), (q, n - 1 - q))
+    if log_ratio[n - 1 - q] - log_ratio[q] > MAX_LOG_SPREAD:
         return None
-    gain = float(ratio[q:len(ratio) - q].mean())  # ``_middle_mean`` of the sorted ratios
+    gain = _middle_mean(ratio)
     if not GAIN_RANGE[0] <= gain <= GAIN_RANGE[1]:
         return None
     return gain, _middle_mean(mean_to[ok] - gain * mean_from[ok])
