@@ -154,9 +154,10 @@ def inside_image(pts: np.ndarray, size: tuple[int, int], border_px: float = BORD
     """Return (N,) bool: finite points at least ``border_px`` inside a (width, height) image."""
     pts = np.asarray(pts).reshape(-1, 2)
     w, h = size
-    x, y = pts[:, 0], pts[:, 1]  # comparisons with NaN are False without a warning
-    return (finite_rows(pts) & (x >= border_px) & (y >= border_px) & (x <= w - 1 - border_px)
-            & (y <= h - 1 - border_px))
+    x, y = pts[:, 0], pts[:, 1]
+    # NaN and inf fail the bounds (a comparison with NaN is False, and warns of nothing).
+    return (x >= border_px) & (y >= border_px) & (x <= w - 1 - border_px) & \
+        (y <= h - 1 - border_px)
 
 
 def gradient_matrix(img: np.ndarray, pts: np.ndarray, win_size_px: int, sobel: bool = False
