@@ -226,13 +226,15 @@ def run_clip(clip: Clip, config: Config) -> dict:
     ground-truth motion transfers them, ``timings`` (list of dicts, ms), ``cpu_ms`` (N,)
     thread CPU time of ``process()`` (ms), ``all_cpu_ms`` (N,) CPU time of every thread and the
     worker process during ``process()`` (ms; the worker's in ticks of 10 ms, meaningful summed
-    over many pairs), ``worker_cpu_ms`` (N,) the worker process's share of it, ``first_dy``
-    stereo offsets v_R - v_L (px) of the previous points of the second frame.
+    over many pairs), ``worker_cpu_ms`` (N,) the worker process's share of it, ``rig_measured``
+    (N,) bool whether the pair's work after its pose measured the rig (its rig record, completed
+    then, says ``updated`` or ``rejected``), ``first_dy`` stereo offsets v_R - v_L (px) of the
+    previous points of the second frame.
     """
     vo = StereoOdometry(config)
     vo.workers.wait_ready()  # a worker process's start-up is not timed
     poses, status, tracked, inliers, movers, bad, timings, cpu = [], [], [], [], [], [], [], []
-    all_cpu, worker_cpu = [], []
+    all_cpu, worker_cpu, results = [], [], []
     first_dy = np.zeros(0)
     for i, frame in enumerate(clip.frames):
         c0, p0, w0 = time.thread_time(), time.process_time(), vo.workers.worker_cpu_seconds()
@@ -243,6 +245,7 @@ def run_clip(clip: Clip, config: Config) -> dict:
         all_cpu.append((p1 - p0) * 1e3 + worker_cpu[-1])
         if not res.accepted:
             raise RuntimeError(f'{clip.name}: frame at {frame.stamp_s} s was not accepted')
+        results.append(res)
         poses.append(res.T_world_cam)
         status.append(res.status)
         tracked.append(res.n_tracked)
@@ -271,11 +274,14 @@ def run_clip(clip: Clip, config: Config) -> dict:
         movers.append(on_movers)
         bad.append(off_truth)
     vo.close()
+    measured = np.array([r.rig is not None and r.rig.last in ('updated', 'rejected')
+                         for r in results], bool)
     return {'poses': np.asarray(poses), 'status': status, 'tracked': np.asarray(tracked),
             'inliers': np.asarray(inliers), 'mover_inliers': np.asarray(movers),
             'bad_inliers': np.asarray(bad),
             'timings': timings, 'cpu_ms': np.asarray(cpu), 'all_cpu_ms': np.asarray(all_cpu),
-            'worker_cpu_ms': np.asarray(worker_cpu), 'first_dy': first_dy}
+            'worker_cpu_ms': np.asarray(worker_cpu), 'rig_measured': measured,
+            'first_dy': first_dy}
 
 
 class Runner:

@@ -12,12 +12,13 @@ image to its second (median of 20 calls; 6-10 ms seen here).
 Prints, per round, the median total ms per pair of every configuration on every clip (first
 pair left out, image loading excluded) and the reference; then, per configuration, the median
 over rounds and the verdict against the target (half of libviso2's time per pair), the median
-up to the pose (without the last pair's work after its pose, which a node runs after publishing:
-the rig refinement's update, on every second pair, and taking the worker's new corners), the CPU
-time per pair of every thread and of the pipeline's worker process added and split by where it
-ran (the caller's thread, the process's other threads, the worker process), and that mean CPU
-time over the CPUs the process may use (pairs cannot take less on average: a configuration near
-it gains nothing from more overlap, only from less work); and per variant its extra ms and
+up to the pose (without the last pair's work after its pose, which a node runs after
+publishing: the rig refinement's update, on every second pair, and taking the worker's new
+corners), the medians of the pairs after one whose rig update measured and of the others, the
+CPU time per pair of every thread and of the pipeline's worker process added and split by where
+it ran (the caller's thread, the process's other threads, the worker process), and that mean
+CPU time over the CPUs the process may use (pairs cannot take less on average: a configuration
+near it gains nothing from more overlap, only from less work); and per variant its extra ms and
 extra CPU over the first configuration, paired within rounds (median and range).
 
 Usage::
@@ -83,29 +84,39 @@ def reference_ms(clip: Clip) -> float:
     return float(np.median(times))
 
 
-def total_ms(clip: Clip, config: Config) -> tuple[float, float, float, np.ndarray, float]:
+def total_ms(clip: Clip, config: Config) -> dict:
     """
     One run over the clip: ms per pair (median), CPU, the caller's share, where the CPU went.
 
-    Pairs after the first count (the worker's start-up left out). The CPU time adds every thread
-    of this process and the pipeline's worker process; the share is the CPU time of the
-    caller's thread alone (``process()``'s) over the mean total time per pair. Where: mean CPU
-    ms per pair of the caller's thread, of the process's other threads (the helper, and a worker
-    thread if any) and of the worker process. Last, the median ms per pair up to its pose:
-    ``process()`` first runs the last pair's work after its pose (``after_pose``: the rig
-    refinement's update, on every ``rig.measure_every``-th pair, and taking the worker's new
-    corners), which a node runs after publishing that pose.
+    Pairs after the first count (the worker's start-up left out). Keys: ``total`` the median
+    ms per pair; ``cpu`` the mean CPU ms per pair of every thread of this process and of the
+    pipeline's worker process; ``caller`` the CPU time of the caller's thread alone
+    (``process()``'s) over the mean total time per pair; ``where`` (3,) the mean CPU ms per
+    pair of the caller's thread, of the process's other threads (the helper, and a worker
+    thread if any) and of the worker process; ``to_pose`` the median ms per pair up to its
+    pose: ``process()`` first runs the last pair's work after its pose (``after_pose``: the
+    rig refinement's update, on every ``rig.measure_every``-th pair, and taking the worker's
+    new corners), which a node runs after publishing that pose; ``after_update`` and
+    ``no_update`` the median ms of the pairs after one whose rig update measured and of the
+    others (NaN when there are none).
     """
     run = run_clip(clip, config)
     cpu = float(np.mean(run['all_cpu_ms'][1:]))
-    totals = [t['total'] for t in run['timings'][1:]]
+    totals = np.array([t['total'] for t in run['timings'][1:]])
     to_pose = [t['total'] - last.get('after_pose', 0.0)
                for last, t in zip(run['timings'][:-1], run['timings'][1:])]
+    measured = run['rig_measured'][:-1]  # the work before each counted pair
     own = float(np.mean(run['cpu_ms'][1:]))
     worker = float(np.mean(run['worker_cpu_ms'][1:]))
-    where = np.array([own, cpu - own - worker, worker])
-    return (float(np.median(totals)), cpu, own / float(np.mean(totals)), where,
-            float(np.median(to_pose)))
+
+    def median(values: np.ndarray) -> float:
+        return float(np.median(values)) if len(values) else float('nan')
+
+    return {'total': float(np.median(totals)), 'cpu': cpu,
+            'caller': own / float(np.mean(totals)),
+            'where': np.array([own, cpu - own - worker, worker]),
+            'to_pose': float(np.median(to_pose)), 'after_update': median(totals[measured]),
+            'no_update': median(totals[~measured])}
 
 
 def parse_config(items: list[str]) -> Config:
@@ -166,6 +177,7 @@ def main() -> int:
     caller = np.full_like(totals, np.nan)
     where = np.full((*totals.shape, 3), np.nan)  # caller's thread, other threads, worker
     to_pose = np.full_like(totals, np.nan)
+    groups = np.full((*totals.shape, 2), np.nan)  # after a rig measurement, after none
     reference = np.full(args.rounds, np.nan)
     print(f'\n{"round":>5s} {"reference ms":>12s}  ' + '  '.join(
         f'[{i}] {c.name[:14]:>14s}' for i in range(len(configs)) for c in clips))
@@ -174,8 +186,11 @@ def main() -> int:
         order = np.roll(np.arange(len(configs)), -r)
         for i in order:
             for k, clip in enumerate(clips):
-                (totals[r, i, k], cpu[r, i, k], caller[r, i, k], where[r, i, k],
-                 to_pose[r, i, k]) = total_ms(clip, configs[i])
+                run = total_ms(clip, configs[i])
+                totals[r, i, k], cpu[r, i, k], caller[r, i, k] = (
+                    run['total'], run['cpu'], run['caller'])
+                where[r, i, k], to_pose[r, i, k] = run['where'], run['to_pose']
+                groups[r, i, k] = run['after_update'], run['no_update']
         print(f'{r + 1:5d} {reference[r]:12.2f}  ' + '  '.join(
             f'{totals[r, i, k]:19.2f}' for i in range(len(configs))
             for k in range(len(clips))))
@@ -195,6 +210,11 @@ def main() -> int:
                           for k, clip in enumerate(clips))
         print(f"  [{i}] ms per pair up to its pose, without the last pair's work after its pose "
               f'(which a node runs after publishing; medians over rounds): {posed}')
+        split = '; '.join(
+            f'{clip.name} ' + ' / '.join(f'{v:.2f}' for v in np.median(groups[:, i, k], axis=0))
+            for k, clip in enumerate(clips))
+        print(f'  [{i}] ms per pair after a pair whose rig update measured / after one whose did '
+              f'not (medians over the pairs, then over rounds): {split}')
         busy = '; '.join(f'{clip.name} {100 * np.median(caller[:, i, k]):.0f} %'
                          for k, clip in enumerate(clips))
         print(f"  [{i}] share of the time per pair the caller's thread was busy (its CPU time "

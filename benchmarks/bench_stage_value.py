@@ -92,7 +92,7 @@ def timing(clips: list, configs: list[Config], rounds: int) -> np.ndarray:
         order = np.roll(np.arange(len(configs)), r)
         for c, clip in enumerate(clips):
             for v in order:
-                out[v, c, r] = total_ms(clip, configs[v])[0]
+                out[v, c, r] = total_ms(clip, configs[v])['total']
         print(f'  timing round {r + 1}/{rounds}: reference KLT pass '
               f'{reference_ms(clips[0]):.2f} ms', flush=True)
     return out
