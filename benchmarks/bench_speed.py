@@ -198,6 +198,15 @@ def main() -> int:
     print(f'\nreference KLT pass: median {np.median(reference):.2f} ms, '
           f'{reference.min():.2f}-{reference.max():.2f} over the rounds (6-10 ms seen here)')
     print('total ms per pair, median over rounds (range):')
+
+    def per_clip(cell) -> str:
+        """``clip cell(k); ...`` over the clips."""
+        return '; '.join(f'{clip.name} {cell(k)}' for k, clip in enumerate(clips))
+
+    def medians(values: np.ndarray) -> str:
+        """Medians over rounds of (rounds, n) values, as ``a / b / ...``."""
+        return ' / '.join(f'{v:.2f}' for v in np.median(values, axis=0))
+
     for i, name in enumerate(names):
         cells = []
         for k, clip in enumerate(clips):
@@ -206,26 +215,19 @@ def main() -> int:
                          f'{totals[:, i, k].max():.2f}), CPU {np.median(cpu[:, i, k]):.2f} '
                          f'{verdict(med <= TARGET_TOTAL_MS)}')
         print(f'  [{i}] {name}: ' + '; '.join(cells))
-        posed = '; '.join(f'{clip.name} {np.median(to_pose[:, i, k]):.2f}'
-                          for k, clip in enumerate(clips))
+        posed = per_clip(lambda k: f'{np.median(to_pose[:, i, k]):.2f}')
         print(f"  [{i}] ms per pair up to its pose, without the last pair's work after its pose "
               f'(which a node runs after publishing; medians over rounds): {posed}')
-        split = '; '.join(
-            f'{clip.name} ' + ' / '.join(f'{v:.2f}' for v in np.median(groups[:, i, k], axis=0))
-            for k, clip in enumerate(clips))
+        split = per_clip(lambda k: medians(groups[:, i, k]))
         print(f'  [{i}] ms per pair after a pair whose rig update measured / after one whose did '
               f'not (medians over the pairs, then over rounds): {split}')
-        busy = '; '.join(f'{clip.name} {100 * np.median(caller[:, i, k]):.0f} %'
-                         for k, clip in enumerate(clips))
+        busy = per_clip(lambda k: f'{100 * np.median(caller[:, i, k]):.0f} %')
         print(f"  [{i}] share of the time per pair the caller's thread was busy (its CPU time "
               f'over the total; near 100 %: it bounds the pair): {busy}')
-        split = '; '.join(
-            f'{clip.name} ' + ' / '.join(f'{v:.2f}' for v in np.median(where[:, i, k], axis=0))
-            for k, clip in enumerate(clips))
+        split = per_clip(lambda k: medians(where[:, i, k]))
         print(f"  [{i}] CPU per pair where it ran (the caller's thread / the process's other "
               f'threads / the worker process, ms; medians over rounds): {split}')
-        floor = '; '.join(f'{clip.name} {np.median(cpu[:, i, k]) / cores:.2f} ms'
-                          for k, clip in enumerate(clips))
+        floor = per_clip(lambda k: f'{np.median(cpu[:, i, k]) / cores:.2f} ms')
         print(f'  [{i}] mean CPU per pair over the {cores} CPUs (pairs cannot take less on '
               f'average): {floor}')
     for i in range(1, len(configs)):

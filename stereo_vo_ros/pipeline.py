@@ -40,7 +40,6 @@ from .records import Correspondences, OdometryResult, StereoFrame, TrackingStatu
 from .road.ground_plane import fit_ground_plane, road_speed, triangulate
 from .road.road_alignment import RoadAligner, RoadImages, RoadPlane
 from .road.vehicle_motion import lateral_constraint
-from .tracking.lucas_kanade import finite_rows
 from .tracking.tracker import PendingTrack, StereoTracker
 
 LOG = logging.getLogger(__name__)
@@ -696,7 +695,7 @@ class ConstantVelocityPrior:
                              self.calib).predict(self.velocity)
         if self.H_cur is not None:
             pred[:, 2:] = apply_homography(self.H_cur, pred[:, 2:])
-        bad = ~(finite_rows(pred[:, :2]) & finite_rows(pred[:, 2:]))
+        bad = ~np.all(np.isfinite(pred), axis=1)
         pred[bad, :2] = prev_left[bad]
         pred[bad, 2:] = prev_right[bad]
         return pred[:, :2], pred[:, 2:]
