@@ -17,7 +17,8 @@ from stereo_vo_ros.estimation.rig_calibration import (apply_homography, camera_i
                                                       refined_camera_infos, rig_jacobian,
                                                       RigCalibrator, right_homography,
                                                       row_coupling)
-from stereo_vo_ros.estimation.rig_measurement import initial_points, measure_pair
+from stereo_vo_ros.estimation.rig_measurement import (initial_points, measure_pair,
+                                                      moved_right_points)
 from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
@@ -229,6 +230,34 @@ def test_correction_undoes_the_rig_error():
     out = rig.corrected(pinned, calib, calib)
     np.testing.assert_allclose(out.cur_right[:, 1], pinned.cur_left[:, 1], atol=2e-3)
     np.testing.assert_allclose(out.cur_right[:, 0], exact.cur_right[:, 0], atol=2e-3)
+
+
+def test_moved_right_points_follow_their_definition():
+    """Pinned rows (rectified, row equal to the left one) move and slide; then all are mapped."""
+    rng = np.random.default_rng(7)
+    calib = kitti_calibration()
+    H = right_homography(calib.K_right, THETA * 20.0)
+    left = rng.uniform(0.0, 600.0, (60, 2))
+    right = left + rng.normal(0.0, 3.0, left.shape)
+    right[::3, 1] = left[::3, 1]  # pinned
+    right[5] = np.nan
+    coupling = rng.normal(0.0, 0.5, len(left))
+    pinned = pinned_rows(calib, left, right)
+    for rectified, c in ((True, coupling), (True, None), (False, coupling)):
+        want = right.copy()
+        if rectified:
+            row = apply_homography(H, right[pinned])[:, 1]
+            if c is not None:
+                want[pinned, 0] -= (row - right[pinned, 1]) * c[pinned]
+            want[pinned, 1] = row
+        got = moved_right_points(H, None, left, right, rectified, c)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(moved_right_points(H, np.linalg.inv(H), left, right,
+                                                      rectified, c),
+                                   apply_homography(np.linalg.inv(H), want), rtol=0, atol=1e-9)
+        assert np.isnan(got[5]).all() and np.isfinite(np.delete(got, 5, 0)).all()
+    assert np.array_equal(moved_right_points(np.eye(3), None, left, right, True), right,
+                          equal_nan=True)
 
 
 def test_exact_rig_stays_at_zero():
@@ -610,3 +639,26 @@ def test_pair_measurement_steps_to_the_motion_that_fits():
     info, _ = _reduced_information(calibs, pts, T, z, np.ones(z.shape, bool))
     scale = m.sigma_px ** 2 * cfg.measurement_inflation
     assert np.linalg.norm(m.information * scale - info) < 1e-6 * np.linalg.norm(info)
+
+
+def test_pair_measurement_drops_unusable_points():
+    """Rows with non-finite views and a gross outlier are left out; the rest still fit."""
+    calibs = [kitti_calibration()] * 2
+    z, T = _pair(calibs, np.random.default_rng(5), 60, 0.0)
+    z[3, 6] += 40.0  # a wrong current right match
+    z[10, 0] = z[11, 5] = np.nan  # views a tracker could not give
+    z[12, 2] = np.inf
+    corr = Correspondences(z[:, 0:2], z[:, 2:4], z[:, 4:6], z[:, 6:8], np.arange(len(z)),
+                           np.ones(len(z), np.int64))
+    cfg = _pair_measurement_config(iterations=2)
+    m = measure_pair(corr, *calibs, T, cfg)
+    assert m is not None and m.n_points == len(z) - 4
+    assert np.isfinite(m.information).all() and np.isfinite(m.gradient).all()
+    assert m.sigma_px == cfg.min_sigma_px  # exact views: the scale's floor
+    assert np.abs(np.linalg.solve(m.information, m.gradient)).max() < 1e-6
+    few = Correspondences(*(a[:cfg.min_points - 1] for a in (corr.prev_left, corr.prev_right,
+                                                             corr.cur_left, corr.cur_right)))
+    assert measure_pair(few, *calibs, T, cfg) is None
+    z[:, 4] = np.nan
+    assert measure_pair(Correspondences(z[:, 0:2], z[:, 2:4], z[:, 4:6], z[:, 6:8]), *calibs, T,
+                        cfg) is None

@@ -67,9 +67,9 @@ from scipy.special import gammaincinv
 from .camera import StereoCalibration
 from .rig_camera_info import camera_info_yaml, refined_camera_infos
 from .rig_measurement import (apply_homography, initial_points, measure_pair, measure_rows,
-                              N_PARAMS, offsets_at_centre, PairMeasurement, PARAMETERS,
-                              pinned_rows, rig_jacobian, right_homography, rotation_zxy,
-                              row_coupling, ROW_GATE_PX)
+                              moved_right_points, N_PARAMS, offsets_at_centre, PairMeasurement,
+                              PARAMETERS, pinned_rows, rig_jacobian, right_homography,
+                              rotation_zxy, row_coupling, ROW_GATE_PX)
 from ..config import RigConfig
 from ..records import Correspondences, RigEstimate
 
@@ -192,7 +192,7 @@ class RigCalibrator:
         return self._homographies(calib)[1]
 
     def _homographies(self, calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
-        theta = self.applied()
+        theta = self._correction()[0]
         key = (id(calib), theta.tobytes())
         if self._H_cache is None or self._H_cache[0] != key:
             H = right_homography(calib.K_right, theta)
@@ -201,7 +201,7 @@ class RigCalibrator:
 
     def active(self) -> bool:
         """Whether the correction is applied (enabled and away from zero)."""
-        return self.cfg.enabled and bool(np.any(self.applied() != 0.0))
+        return self.cfg.enabled and self._correction()[1]
 
     def applied(self) -> np.ndarray:
         """
@@ -217,13 +217,18 @@ class RigCalibrator:
         ``theta``, ``cov``, the grid of ``rig.apply_min_px`` or the thresholds changed since
         the last call (on an unchanged state it would repeat the last result).
         """
+        return self._correction()[0].copy()
+
+    def _correction(self) -> tuple[np.ndarray, bool]:
+        """Return ``applied`` (not a copy: not to be changed) and whether it differs from zero."""
         if self._linearised_at is not None:
-            return self._linearised_at.copy()
+            return self._linearised_at, bool(np.any(self._linearised_at != 0.0))
         key = (np.asarray(self.theta).tobytes(), np.asarray(self.cov).tobytes(),
                self._grid_jacobian is None, self.cfg.apply_probability, self.cfg.apply_min_px)
         if self._applied_cache is None or self._applied_cache[0] != key:
-            self._applied_cache = (key, self._test_blocks())
-        return self._applied_cache[1].copy()
+            out = self._test_blocks()
+            self._applied_cache = (key, out, bool(np.any(out != 0.0)))
+        return self._applied_cache[1], self._applied_cache[2]
 
     def _test_blocks(self) -> np.ndarray:
         """Latch the blocks that differ from zero significantly; the correction (5,)."""
@@ -301,20 +306,15 @@ class RigCalibrator:
     def _unpinned(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
                   coupling: np.ndarray | None = None) -> np.ndarray:
         """Right points (N, 2) with pinned rows moved to the rows the estimate expects."""
-        pinned = pinned_rows(calib, left, right)
-        if not np.any(pinned) or not self.active():
+        if not self.active():
             return right
-        right = np.array(right, np.float64)
-        row = apply_homography(self.homography(calib), right[pinned])[:, 1]
-        if coupling is not None:
-            right[pinned, 0] -= (row - right[pinned, 1]) * coupling[pinned]
-        right[pinned, 1] = row
-        return right
+        return moved_right_points(self.homography(calib), None, left, right,
+                                  calib.kind == 'rectified', coupling)
 
     def _correct(self, left: np.ndarray, right: np.ndarray, calib: StereoCalibration,
                  coupling: np.ndarray | None = None) -> np.ndarray:
-        return apply_homography(self.homography_inverse(calib),
-                                self._unpinned(left, right, calib, coupling))
+        H, H_inv = self._homographies(calib)
+        return moved_right_points(H, H_inv, left, right, calib.kind == 'rectified', coupling)
 
     def distorted(self, pts: np.ndarray, calib: StereoCalibration) -> np.ndarray:
         """Map calibrated right pixels (N, 2) to where the real right camera sees them."""

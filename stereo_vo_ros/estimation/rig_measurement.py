@@ -14,8 +14,9 @@ how the estimate is fused and applied) is in :mod:`.rig_calibration`, whose
   ``apply_homography``, its Jacobian ``rig_jacobian`` and the offsets it implies at the
   principal point (``offsets_at_centre``);
 * the rows of the stereo matches: which rows the tracker pinned to the left point's row
-  (``pinned_rows``), their free re-measurement (``measure_rows``) and the slide along the row
-  that a row error causes in the tracker's refinement (``row_coupling``);
+  (``pinned_rows``), their free re-measurement (``measure_rows``), the slide along the row
+  that a row error causes in the tracker's refinement (``row_coupling``) and the right points
+  with those rows moved where an estimate expects them (``moved_right_points``);
 * one pair's measurement (``measure_pair``): a small bundle adjustment of the four views of
   the inliers whose stereo rows measure roll, pitch and the focal ratio and whose temporal
   depth consistency measures yaw and the disparity offset, reduced to the information on
@@ -30,7 +31,6 @@ import math
 import cv2
 import numba
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .camera import StereoCalibration
 from ..config import RigConfig
@@ -43,6 +43,11 @@ N_PARAMS = len(PARAMETERS)
 #: A free stereo match of a pinned right point farther than this from where the current
 #: estimate expects it (pixels, each coordinate) is not used to measure its row.
 ROW_GATE_PX = 1.0
+
+
+_F8 = numba.types.float64
+_M2, _V1 = readonly(_F8, 2), readonly(_F8, 1)
+_W1, _W2, _W3 = (numba.types.Array(_F8, d, 'C') for d in (1, 2, 3))
 
 
 # -- the error model ------------------------------------------------------------------------------
@@ -104,19 +109,30 @@ def rig_jacobian(K_right: np.ndarray, pts: np.ndarray) -> np.ndarray:
         (N, 2, 5) float64 pixels per unit of each ``PARAMETERS`` component.
 
     """
-    pts = np.asarray(pts, np.float64)
-    A, c = K_right[:2, :2], K_right[:2, 2]
-    n = (pts - c) @ np.linalg.inv(A).T  # normalised coordinates (u, v)
-    u, v = n[:, 0], n[:, 1]
-    dn = np.empty((len(pts), 2, N_PARAMS))
-    dn[:, 0, 0], dn[:, 1, 0] = v, -u  # roll
-    dn[:, 0, 1], dn[:, 1, 1] = u * v, 1.0 + v * v  # pitch
-    dn[:, 0, 2], dn[:, 1, 2] = -(1.0 + u * u), -u * v  # yaw
-    dn[:, 0, 3], dn[:, 1, 3] = u, v  # focal ratio (A n = p - c)
-    J = np.einsum('ij,njk->nik', A, dn[:, :, :4])
-    offset = np.zeros((len(pts), 2, 1))
-    offset[:, 0, 0] = -1.0
-    return np.concatenate([J, offset], axis=2)
+    pts = np.ascontiguousarray(pts, np.float64).reshape(-1, 2)
+    A = np.ascontiguousarray(K_right[:2, :2], np.float64)
+    out = np.empty((len(pts), 2, N_PARAMS))
+    _rig_jacobian(A, np.linalg.inv(A), np.ascontiguousarray(K_right[:2, 2], np.float64), pts,
+                  out)
+    return out
+
+
+@kernel(numba.types.void(_M2, _M2, _V1, _M2, _W3))
+def _rig_jacobian(A, A_inv, c, pts, out):
+    """``rig_jacobian`` into ``out`` (N, 2, 5): ``A`` (2, 2) and ``c`` (2,) of the intrinsics."""
+    dn = np.empty((2, 4))
+    for i in range(pts.shape[0]):
+        x, y = pts[i, 0] - c[0], pts[i, 1] - c[1]
+        u = A_inv[0, 0] * x + A_inv[0, 1] * y  # normalised coordinates
+        v = A_inv[1, 0] * x + A_inv[1, 1] * y
+        dn[0, 0], dn[1, 0] = v, -u  # roll
+        dn[0, 1], dn[1, 1] = u * v, 1.0 + v * v  # pitch
+        dn[0, 2], dn[1, 2] = -(1.0 + u * u), -u * v  # yaw
+        dn[0, 3], dn[1, 3] = u, v  # focal ratio (A n = p - c)
+        for r in range(2):
+            for k in range(4):
+                out[i, r, k] = A[r, 0] * dn[0, k] + A[r, 1] * dn[1, k]
+        out[i, 0, 4], out[i, 1, 4] = -1.0, 0.0  # disparity offset
 
 
 def offsets_at_centre(K_right: np.ndarray) -> np.ndarray:
@@ -142,6 +158,61 @@ def pinned_rows(calib: StereoCalibration, left: np.ndarray, right: np.ndarray) -
     if calib.kind != 'rectified' or len(left) == 0:
         return np.zeros(len(left), bool)
     return np.asarray(right)[:, 1] == np.asarray(left)[:, 1]
+
+
+def moved_right_points(H_row: np.ndarray, H_out: np.ndarray | None, left: np.ndarray,
+                       right: np.ndarray, rectified: bool,
+                       coupling: np.ndarray | None = None) -> np.ndarray:
+    """
+    Right points with pinned rows moved to the rows ``H_row`` gives them, then mapped by ``H_out``.
+
+    Parameters
+    ----------
+    H_row : np.ndarray
+        (3, 3) homography whose image of a pinned right point gives its row.
+    H_out : np.ndarray or None
+        (3, 3) homography every point is then mapped by (None: not mapped).
+    left, right : np.ndarray
+        (N, 2) matched ideal pixels.
+    rectified : bool
+        Whether the calibration is rectified (only then are rows pinned, ``pinned_rows``).
+    coupling : np.ndarray, optional
+        (N,) ``row_coupling`` of the matches: a pinned point also slides back along its row by
+        its coupling times the row's move.
+
+    Returns
+    -------
+    np.ndarray
+        (N, 2) float64 (a new array).
+
+    """
+    right = np.ascontiguousarray(right, np.float64).reshape(-1, 2)
+    out = np.empty_like(right)
+    _moved_right_points(np.ascontiguousarray(H_row, np.float64),
+                        np.ascontiguousarray(np.eye(3) if H_out is None else H_out, np.float64),
+                        H_out is not None, np.ascontiguousarray(left, np.float64).reshape(-1, 2),
+                        right, bool(rectified),
+                        np.zeros(len(right)) if coupling is None else
+                        np.ascontiguousarray(coupling, np.float64), out)
+    return out
+
+
+@kernel(numba.types.void(_M2, _M2, numba.types.boolean, _M2, _M2, numba.types.boolean, _V1,
+                         _W2))
+def _moved_right_points(H_row, H_out, map_out, left, right, rectified, coupling, out):
+    """``moved_right_points`` into ``out`` (N, 2)."""
+    for i in range(right.shape[0]):
+        x, y = right[i, 0], right[i, 1]
+        if rectified and y == left[i, 1]:
+            row = (H_row[1, 0] * x + H_row[1, 1] * y + H_row[1, 2]) / \
+                (H_row[2, 0] * x + H_row[2, 1] * y + H_row[2, 2])
+            x -= (row - y) * coupling[i]
+            y = row
+        if map_out:
+            w = H_out[2, 0] * x + H_out[2, 1] * y + H_out[2, 2]
+            x, y = (H_out[0, 0] * x + H_out[0, 1] * y + H_out[0, 2]) / w, \
+                (H_out[1, 0] * x + H_out[1, 1] * y + H_out[1, 2]) / w
+        out[i, 0], out[i, 1] = x, y
 
 
 def measure_rows(left_img: np.ndarray, right_img: np.ndarray, left: np.ndarray,
@@ -308,25 +379,40 @@ def initial_points(calib: StereoCalibration, prev_left: np.ndarray, prev_right: 
     inverse depth of the closest point of the left ray to the right ray, slightly negative for
     far points whose noisy rays diverge.
     """
-    ray_l = np.hstack([prev_left, np.ones((len(prev_left), 1))]) @ np.linalg.inv(calib.K_left).T
-    ray_l /= ray_l[:, 2:3]
     R_lr = calib.R_right_left.T
-    ray_r = np.hstack([prev_right, np.ones((len(prev_right), 1))]) @ \
-        (R_lr @ np.linalg.inv(calib.K_right)).T  # in the left frame
-    centre = -R_lr @ calib.t_right_left  # right optical centre in the left frame (m)
-    ll = np.sum(ray_l * ray_l, 1)
-    rr = np.sum(ray_r * ray_r, 1)
-    lr = np.sum(ray_l * ray_r, 1)
-    lc, rc = ray_l @ centre, ray_r @ centre
-    # Depth lambda = (lc rr - lr rc) / (ll rr - lr^2); its inverse stays finite at infinity.
-    with np.errstate(divide='ignore', invalid='ignore'):
-        rho = (ll * rr - lr * lr) / (lc * rr - lr * rc)
-    return np.column_stack([ray_l[:, 0], ray_l[:, 1], rho])
+    out = np.empty((len(prev_left), 3))
+    _ray_points(np.ascontiguousarray(prev_left, np.float64),
+                np.ascontiguousarray(prev_right, np.float64), np.linalg.inv(calib.K_left),
+                R_lr @ np.linalg.inv(calib.K_right), -R_lr @ calib.t_right_left, out)
+    return out
 
 
-_F8 = numba.types.float64
-_M2, _M3, _V1 = readonly(_F8, 2), readonly(_F8, 3), readonly(_F8, 1)
-_W1, _W2, _W3 = (numba.types.Array(_F8, d, 'C') for d in (1, 2, 3))
+@kernel(numba.types.void(_M2, _M2, _M2, _M2, _V1, _W2))
+def _ray_points(left, right, K_left_inv, right_to_left, centre, out):
+    """
+    ``initial_points`` into ``out``: rays of the left and right pixels, their closest points.
+
+    ``right_to_left`` (3, 3) maps right pixels to rays in the left frame; ``centre`` (3,) is
+    the right optical centre in the left frame (m).
+    """
+    ray_r = np.empty(3)
+    for i in range(left.shape[0]):
+        u, v = left[i, 0], left[i, 1]
+        w = K_left_inv[2, 0] * u + K_left_inv[2, 1] * v + K_left_inv[2, 2]
+        a = (K_left_inv[0, 0] * u + K_left_inv[0, 1] * v + K_left_inv[0, 2]) / w
+        b = (K_left_inv[1, 0] * u + K_left_inv[1, 1] * v + K_left_inv[1, 2]) / w
+        one = w / w
+        for c in range(3):
+            ray_r[c] = right_to_left[c, 0] * right[i, 0] + right_to_left[c, 1] * right[i, 1] + \
+                right_to_left[c, 2]
+        ll = a * a + b * b + one * one
+        rr = ray_r[0] * ray_r[0] + ray_r[1] * ray_r[1] + ray_r[2] * ray_r[2]
+        lr = a * ray_r[0] + b * ray_r[1] + one * ray_r[2]
+        lc = a * centre[0] + b * centre[1] + one * centre[2]
+        rc = ray_r[0] * centre[0] + ray_r[1] * centre[1] + ray_r[2] * centre[2]
+        # Depth lambda = (lc rr - lr rc) / (ll rr - lr^2); its inverse stays finite at infinity.
+        out[i, 0], out[i, 1] = a, b
+        out[i, 2] = (ll * rr - lr * lr) / (lc * rr - lr * rc)
 
 
 @kernel()
@@ -352,8 +438,7 @@ def _motion_columns(D, q, rho, J, row):
         J[row + r, 8] = D[r, 0] * q[1] - D[r, 1] * q[0]
 
 
-@kernel(numba.types.void(_M2, _M2, _M2, _M2, _V1, _M2, _M2, _V1, _M2, _M2, _M2, _V1, _M2, _W2,
-                         _W3))
+@kernel()
 def _residuals_jacobian(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1,
                         R_rl1, res, J):
     """
@@ -422,36 +507,55 @@ def _residuals_jacobian(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1
                 res[i, k] = 0.0
 
 
-@kernel(numba.types.boolean(_M3, _M2, _M2, _W2, _W1, _W3, _W3, _W2))
+#: Per residual row of a point (previous left, previous right, current left, current right, two
+#: rows each), the first and last + 1 global column (motion 0-5, rig 6-10) its Jacobian can fill:
+#: the previous views do not move with the motion, the left views not with the rig.
+_GLOBAL_FROM = np.array([0, 0, 6, 6, 0, 0, 0, 0])
+_GLOBAL_TO = np.array([0, 0, 11, 11, 6, 6, 11, 11])
+
+
+@kernel()
 def _reduced_normal_equations(J, res, weights, S, s, Hpp_inv, Hpg, bp):
     """
     Write the normal equations of the global parameters (motion, rig), points eliminated.
 
-    ``J`` (N, 8, 3 + G), ``res`` and ``weights`` (N, 8); writes ``S`` (G, G) and ``s`` (G,)
-    (Schur complements), and per point ``Hpp_inv`` (N, 3, 3), ``Hpg`` (N, 3, G) and ``bp``
-    (N, 3). False when a point's 3x3 block is singular.
+    ``J`` (N, 8, 3 + 11) as ``_residuals_jacobian`` writes it, ``res`` and ``weights``
+    (N, 8); writes ``S`` (11, 11) and ``s`` (11,) (Schur complements), and per point
+    ``Hpp_inv`` (N, 3, 3), ``Hpg`` (N, 3, 11) and ``bp`` (N, 3). Sums skip the Jacobian's
+    zero blocks (``_GLOBAL_FROM``, ``_GLOBAL_TO``). False when a point's 3x3 block is singular.
     """
     n, m, cols = J.shape
     g = cols - 3
     S[:, :] = 0.0
     s[:] = 0.0
-    H = np.empty((3, cols))
+    H = np.empty((3, 3))
     G = np.empty((g, 3))
+    wj = np.empty(cols)
     for i in range(n):
         Ji, wi, ri = J[i], weights[i], res[i]
-        for a in range(3):
-            for c in range(cols):
-                acc = 0.0
-                for r in range(m):
-                    acc += wi[r] * Ji[r, a] * Ji[r, c]
-                H[a, c] = acc
-            acc = 0.0
-            for r in range(m):
-                acc += wi[r] * Ji[r, a] * ri[r]
-            bp[i, a] = acc
+        H[:, :] = 0.0
+        bp[i, :] = 0.0
+        Hpg[i, :, :] = 0.0
+        for r in range(m):  # the direct terms
+            lo, hi = _GLOBAL_FROM[r], _GLOBAL_TO[r]
+            w = wi[r]
+            for c in range(3):
+                wj[c] = w * Ji[r, c]
+            for c in range(3 + lo, 3 + hi):
+                wj[c] = w * Ji[r, c]
+            for a in range(3):
+                for b in range(a + 1):
+                    H[a, b] += wj[a] * Ji[r, b]
+                bp[i, a] += wj[a] * ri[r]
+                for c in range(lo, hi):
+                    Hpg[i, a, c] += wj[a] * Ji[r, 3 + c]
+            for c in range(lo, hi):
+                s[c] += wj[3 + c] * ri[r]
+                for c2 in range(lo, c + 1):
+                    S[c, c2] += wj[3 + c] * Ji[r, 3 + c2]
         # Inverse of the symmetric point block (adjugate over determinant).
-        p, q, u = H[0, 0], H[0, 1], H[0, 2]
-        d, e, f = H[1, 1], H[1, 2], H[2, 2]
+        p, q, u = H[0, 0], H[1, 0], H[2, 0]
+        d, e, f = H[1, 1], H[2, 1], H[2, 2]
         A, B, C = d * f - e * e, u * e - q * f, q * e - u * d
         det = p * A + q * B + u * C
         if not abs(det) > 0.0:
@@ -460,28 +564,167 @@ def _reduced_normal_equations(J, res, weights, S, s, Hpp_inv, Hpg, bp):
         Hi[0, 0], Hi[0, 1], Hi[0, 2] = A / det, B / det, C / det
         Hi[1, 0], Hi[1, 1], Hi[1, 2] = B / det, (p * f - u * u) / det, (q * u - p * e) / det
         Hi[2, 0], Hi[2, 1], Hi[2, 2] = C / det, Hi[1, 2], (p * d - q * q) / det
-        for a in range(3):
-            for c in range(g):
-                Hpg[i, a, c] = H[a, 3 + c]
-        for c in range(g):
+        Hg = Hpg[i]
+        for c in range(g):  # the point eliminated
             for a in range(3):
-                G[c, a] = H[0, 3 + c] * Hi[0, a] + H[1, 3 + c] * Hi[1, a] + \
-                    H[2, 3 + c] * Hi[2, a]
-        for c in range(g):
-            acc = 0.0
-            for r in range(m):
-                acc += wi[r] * Ji[r, 3 + c] * ri[r]
-            s[c] += acc - (G[c, 0] * bp[i, 0] + G[c, 1] * bp[i, 1] + G[c, 2] * bp[i, 2])
+                G[c, a] = Hg[0, c] * Hi[0, a] + Hg[1, c] * Hi[1, a] + Hg[2, c] * Hi[2, a]
+            s[c] -= G[c, 0] * bp[i, 0] + G[c, 1] * bp[i, 1] + G[c, 2] * bp[i, 2]
             for c2 in range(c + 1):
-                acc = 0.0
-                for r in range(m):
-                    acc += wi[r] * Ji[r, 3 + c] * Ji[r, 3 + c2]
-                S[c, c2] += acc - (G[c, 0] * H[0, 3 + c2] + G[c, 1] * H[1, 3 + c2] +
-                                   G[c, 2] * H[2, 3 + c2])
+                S[c, c2] -= G[c, 0] * Hg[0, c2] + G[c, 1] * Hg[1, c2] + G[c, 2] * Hg[2, c2]
     for c in range(g):
         for c2 in range(c):
             S[c2, c] = S[c, c2]
     return True
+
+
+@kernel()
+def _median_abs(res, mask, first, buf):
+    """
+    Median of ``|res[:, first:]|`` where ``mask`` > 0 (NaN if any is NaN or none is), and count.
+
+    ``buf`` (at least ``res.size``) is scratch space.
+    """
+    m, finite = 0, True
+    for i in range(res.shape[0]):
+        for k in range(first, res.shape[1]):
+            if mask[i, k] > 0:
+                buf[m] = abs(res[i, k])
+                finite = finite and not np.isnan(buf[m])
+                m += 1
+    if m == 0 or not finite:
+        return np.nan, m
+    return np.median(buf[:m]), m
+
+
+@kernel()
+def _rotate_by(R, w):
+    """``R`` (3, 3) times the rotation of rotation vector ``w`` (3,) (rad), in place."""
+    th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    th = math.sqrt(th2)
+    if th < 1e-8:
+        a, b = 1.0, 0.5
+    else:  # sin(th) / th, (1 - cos(th)) / th^2 without the cancellation
+        h = math.sin(0.5 * th)
+        a, b = math.sin(th) / th, 2.0 * h * h / th2
+    E = np.empty((3, 3))
+    for r in range(3):  # E = I + a [w]x + b [w]x^2, [w]x^2 = w w^T - |w|^2 I
+        for c in range(3):
+            E[r, c] = b * w[r] * w[c] + (1.0 - b * th2 if r == c else 0.0)
+    E[0, 1] -= a * w[2]
+    E[0, 2] += a * w[1]
+    E[1, 0] += a * w[2]
+    E[1, 2] -= a * w[0]
+    E[2, 0] -= a * w[1]
+    E[2, 1] += a * w[0]
+    row = np.empty(3)
+    for r in range(3):
+        for c in range(3):
+            row[c] = R[r, 0] * E[0, c] + R[r, 1] * E[1, c] + R[r, 2] * E[2, c]
+        R[r, :] = row
+
+
+@kernel(numba.types.int64(_W2, _W2, _W2, _W2, _W1, _M2, _M2, _V1, _M2, _M2, _M2, _V1, _M2, _W3,
+                          numba.types.int64, numba.types.int64, _F8, _F8, _F8, _W2, _W1, _W1))
+def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_rl1, J,
+            iterations, min_points, min_sigma, outlier_sigmas, huber_sigmas, info, grad,
+            sigma_out):
+    """
+    ``measure_pair``'s bundle adjustment; returns the points kept, -1 for a singular block.
+
+    ``pts`` (N, 3), ``z`` and ``mask`` (N, 8), the motion ``R``, ``t`` and ``J`` (N, 8, 14)
+    with its rig columns filled are changed in place (the kept points first). Writes the
+    information ``info`` (5, 5) and gradient ``grad`` (5,) on the rig error (points and motion
+    eliminated, not yet scaled by the noise) and the residual scale ``sigma_out[0]`` (pixels).
+    Fewer than ``min_points`` kept: nothing written.
+    """
+    n_glob = J.shape[2] - 3
+    n = 0
+    for i in range(pts.shape[0]):  # points and views that are finite
+        good = True
+        for k in range(3):
+            good = good and math.isfinite(pts[i, k])
+        for k in range(8):
+            good = good and math.isfinite(z[i, k])
+        if good:
+            pts[n], z[n], mask[n], J[n] = pts[i], z[i], mask[i], J[i]
+            n += 1
+    if n < min_points:
+        return n
+    res, weights, buf = np.empty((n, 8)), np.empty((n, 8)), np.empty(8 * n)
+    S, s = np.empty((n_glob, n_glob)), np.empty(n_glob)
+    Hpp_inv, Hpg, bp = np.empty((n, 3, 3)), np.empty((n, 3, n_glob)), np.empty((n, 3))
+    chol, tmp, d_xi, e = np.zeros((6, 6)), np.empty(6), np.empty(6), np.empty(3)
+    sigma = np.nan
+    for it in range(iterations + 1):
+        _residuals_jacobian(pts[:n], z[:n], mask[:n], R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1,
+                            K_R1, t_rl1, R_rl1, res[:n], J[:n])
+        # Robust scale and weights (Huber); the first pass uses unit weights.
+        if it == 0:  # the previous pair fixed the points: the current views carry the errors
+            med, _ = _median_abs(res[:n], mask[:n], 4, buf)
+            sigma = 1.4826 * med
+        else:
+            med, n_res = _median_abs(res[:n], mask[:n], 0, buf)
+            dof = max(n_res - 3 * n - n_glob, 1)
+            sigma = 1.4826 * med * math.sqrt(n_res / dof)
+        sigma = min_sigma if min_sigma > sigma else sigma  # (NaN stays NaN)
+        if it > 0 or iterations == 0:
+            kept = 0
+            for i in range(n):
+                big, finite = 0.0, True
+                for k in range(8):
+                    finite = finite and not np.isnan(res[i, k])
+                    big = max(big, abs(res[i, k]))
+                if finite and big < outlier_sigmas * sigma:
+                    pts[kept], z[kept], mask[kept] = pts[i], z[i], mask[i]
+                    res[kept], J[kept] = res[i], J[i]
+                    kept += 1
+            n = kept
+            if n < min_points:
+                return n
+            k_huber = huber_sigmas * sigma
+            for i in range(n):
+                for k in range(8):
+                    weights[i, k] = mask[i, k] * min(1.0, k_huber / max(abs(res[i, k]), 1e-12))
+        else:
+            weights[:n] = mask[:n]
+        if not _reduced_normal_equations(J[:n], res[:n], weights[:n], S, s, Hpp_inv[:n],
+                                         Hpg[:n], bp[:n]):
+            return -1
+        cholesky(S, 6, chol)
+        if it == iterations:
+            break
+        # Gauss-Newton step of points and motion; theta held (its columns left out).
+        cholesky_solve(chol, 6, s, tmp, d_xi)
+        for i in range(n):
+            for a in range(3):
+                acc = bp[i, a]
+                for c in range(6):
+                    acc -= Hpg[i, a, c] * d_xi[c]
+                e[a] = acc
+            for a in range(3):
+                pts[i, a] += Hpp_inv[i, a, 0] * e[0] + Hpp_inv[i, a, 1] * e[1] + \
+                    Hpp_inv[i, a, 2] * e[2]
+        for r in range(3):  # T <- T exp(xi)
+            t[r] += R[r, 0] * d_xi[0] + R[r, 1] * d_xi[1] + R[r, 2] * d_xi[2]
+        _rotate_by(R, d_xi[3:])
+    # Eliminate the motion: information and gradient of theta alone.
+    col, x = np.empty(6), np.empty((6, n_glob - 6))
+    for b in range(n_glob - 6):
+        col[:] = S[:6, 6 + b]
+        cholesky_solve(chol, 6, col, tmp, x[:, b])
+    cholesky_solve(chol, 6, s, tmp, d_xi)
+    for a in range(n_glob - 6):
+        acc = s[6 + a]
+        for c in range(6):
+            acc -= S[6 + a, c] * d_xi[c]
+        grad[a] = acc
+        for b in range(n_glob - 6):
+            acc = S[6 + a, 6 + b]
+            for c in range(6):
+                acc -= S[6 + a, c] * x[c, b]
+            info[a, b] = acc
+    sigma_out[0] = sigma
+    return n
 
 
 def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
@@ -518,76 +761,34 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     right views. Gauss-Newton on points and motion with ``theta`` held at 0 (``cfg.iterations``
     steps, Huber weights after the first), then the information on ``theta`` with points and
     motion eliminated (Schur complements). Pixel residuals keep the errors-in-variables bias of
-    far points out: every observation, previous or current, has its own residual.
+    far points out: every observation, previous or current, has its own residual. The steps
+    run in one compiled kernel (``_adjust``).
 
     """
     if len(corr) < cfg.min_points:
         return None
-    K_L0, K_R0 = calib_prev.K_left, calib_prev.K_right
-    K_L1, K_R1 = calib_cur.K_left, calib_cur.K_right
-    R_rl0, t_rl0 = calib_prev.R_right_left, calib_prev.t_right_left
-    R_rl1, t_rl1 = calib_cur.R_right_left, calib_cur.t_right_left
     z = np.concatenate([corr.prev_left, corr.prev_right, corr.cur_left, corr.cur_right], 1
                        ).astype(np.float64)
     pts = initial_points(calib_prev, corr.prev_left, corr.prev_right)
-    ok = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(z), axis=1)
-    n = int(np.count_nonzero(ok))
+    mask = np.ones((len(z), 8)) if used is None else np.array(used, np.float64)
+    T = np.asarray(T_prev_cur, np.float64)
+    R, t = T[:3, :3].copy(), T[:3, 3].copy()
+    # Full Jacobian per point: 8 residuals x (3 point + 6 motion + 5 rig) parameters.
+    J = np.zeros((len(z), 8, 3 + 6 + N_PARAMS))
+    J[:, 2:4, 3 + 6:] = rig_jacobian(calib_prev.K_right, z[:, 2:4])
+    J[:, 6:8, 3 + 6:] = rig_jacobian(calib_cur.K_right, z[:, 6:8])
+    cams = [np.ascontiguousarray(a, np.float64) for a in (
+        calib_prev.K_left, calib_prev.K_right, calib_prev.t_right_left,
+        calib_prev.R_right_left, calib_cur.K_left, calib_cur.K_right, calib_cur.t_right_left,
+        calib_cur.R_right_left)]
+    info, grad, sigma = np.empty((N_PARAMS, N_PARAMS)), np.empty(N_PARAMS), np.empty(1)
+    n = _adjust(pts, z, mask, R, t, *cams, J, cfg.iterations, cfg.min_points,
+                cfg.min_sigma_px, cfg.outlier_sigmas, cfg.huber_sigmas, info, grad, sigma)
+    if n < 0:
+        raise np.linalg.LinAlgError('singular point block')
     if n < cfg.min_points:
         return None
-    pts, z = pts[ok], z[ok]
-    mask = np.ones((n, 8)) if used is None else np.asarray(used, np.float64)[ok]
-    R = np.asarray(T_prev_cur, np.float64)[:3, :3].copy()
-    t = np.asarray(T_prev_cur, np.float64)[:3, 3].copy()
-    n_glob = 6 + N_PARAMS
-    cams = [np.ascontiguousarray(a, np.float64) for a in (
-        K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_rl1)]
-    # Full Jacobian per point: 8 residuals x (3 point + 6 motion + 5 rig) parameters.
-    J = np.zeros((n, 8, 3 + n_glob))
-    J[:, 2:4, 3 + 6:] = rig_jacobian(K_R0, corr.prev_right[ok])
-    J[:, 6:8, 3 + 6:] = rig_jacobian(K_R1, corr.cur_right[ok])
-    res = np.empty((n, 8))
-    S, s = np.empty((n_glob, n_glob)), np.empty(n_glob)
-    weights = mask
-    sigma = np.nan
-    for it in range(cfg.iterations + 1):
-        _residuals_jacobian(pts, z, mask, R, t, *cams, res, J)
-        # Robust scale and weights (Huber); the first pass uses unit weights.
-        absr = np.abs(res)
-        if it == 0:  # the previous pair fixed the points: the current views carry the errors
-            sigma = max(1.4826 * float(np.median(absr[:, 4:][mask[:, 4:] > 0])),
-                        cfg.min_sigma_px)
-        else:
-            n_res = int(np.count_nonzero(mask))
-            dof = max(n_res - 3 * n - n_glob, 1)
-            sigma = max(1.4826 * float(np.median(absr[mask > 0])) * np.sqrt(n_res / dof),
-                        cfg.min_sigma_px)
-        if it > 0 or cfg.iterations == 0:
-            keep = np.max(absr, axis=1) < cfg.outlier_sigmas * sigma
-            if not np.all(keep):
-                pts, z, res, absr, J = pts[keep], z[keep], res[keep], absr[keep], J[keep]
-                mask = mask[keep]
-                n = len(pts)
-                if n < cfg.min_points:
-                    return None
-            k = cfg.huber_sigmas * sigma
-            weights = mask * np.minimum(1.0, k / np.maximum(absr, 1e-12))
-        Hpp_inv, Hpg, bp = np.empty((n, 3, 3)), np.empty((n, 3, n_glob)), np.empty((n, 3))
-        if not _reduced_normal_equations(J, res, np.ascontiguousarray(weights), S, s, Hpp_inv,
-                                         Hpg, bp):
-            raise np.linalg.LinAlgError('singular point block')
-        if it == cfg.iterations:
-            break
-        # Gauss-Newton step of points and motion; theta held (its columns left out).
-        d_xi = np.linalg.solve(S[:6, :6], s[:6])
-        d_pts = (Hpp_inv @ (bp - Hpg[:, :, :6] @ d_xi)[:, :, None])[:, :, 0]
-        pts = pts + d_pts
-        t = t + R @ d_xi[:3]  # T <- T exp(xi)
-        R = R @ Rotation.from_rotvec(d_xi[3:]).as_matrix()
-    # Eliminate the motion: information and gradient of theta alone, scaled by the noise.
-    S_mm_inv = np.linalg.inv(S[:6, :6])
-    info = S[6:, 6:] - S[6:, :6] @ S_mm_inv @ S[:6, 6:]
-    grad = s[6:] - S[6:, :6] @ S_mm_inv @ s[:6]
-    scale = 1.0 / (sigma * sigma * cfg.measurement_inflation)
-    info = 0.5 * (info + info.T) * scale
-    return PairMeasurement(information=info, gradient=grad * scale, n_points=int(n),
-                           sigma_px=float(sigma))
+    # Scaled by the noise.
+    scale = 1.0 / (sigma[0] * sigma[0] * cfg.measurement_inflation)
+    return PairMeasurement(information=0.5 * (info + info.T) * scale, gradient=grad * scale,
+                           n_points=int(n), sigma_px=float(sigma[0]))
