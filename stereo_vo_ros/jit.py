@@ -6,7 +6,7 @@ refinement, the KLT gradient matrices of the aperture checks, the rig refinement
 couplings and bundle adjustment, the road alignment's steps, the estimator's transfer to pixels,
 the Shi-Tomasi detection) are compiled with ``kernel`` (``numba.njit`` with ``JIT``). The
 kernels the pipeline calls are compiled as their module is imported, for explicit signatures
-(compiling takes 20-40 s once on two cores; later imports load the on-disk cache in
+(compiling takes 20-45 s once on two cores; later imports load the on-disk cache in
 ``__pycache__``), so no pair, and no job of the worker process, waits for the compiler. They
 release the GIL, so a helper thread runs them next to the caller.
 """
@@ -38,7 +38,7 @@ _UNCACHED = []  # kernels compiled without the on-disk cache (no writable place 
 #: after an install or an update, or no place for the cache), and the seconds that took.
 COMPILED = {'kernels': 0, 'seconds': 0.0}
 #: How long compiling every kernel takes (s; two cores, from a quiet to a busy machine).
-COMPILE_S = (20, 40)
+COMPILE_S = (20, 45)
 #: This module's source, which every kernel's compiled code depends on (options, helpers).
 _STAMP = hashlib.sha1(Path(__file__).read_bytes()).hexdigest()[:12]
 _CHECKED: set = set()

@@ -46,7 +46,7 @@ ROW_GATE_PX = 1.0
 
 
 _F8 = numba.types.float64
-_M2, _V1 = readonly(_F8, 2), readonly(_F8, 1)
+_M2, _M3, _V1 = readonly(_F8, 2), readonly(_F8, 3), readonly(_F8, 1)
 _W1, _W2, _W3 = (numba.types.Array(_F8, d, 'C') for d in (1, 2, 3))
 
 
@@ -438,11 +438,12 @@ def _motion_columns(D, q, rho, J, row):
         J[row + r, 8] = D[r, 0] * q[1] - D[r, 1] * q[0]
 
 
-@kernel()
-def _residuals_jacobian(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1,
+@kernel(numba.types.void(numba.types.int64, _M2, _M2, _M2, _M2, _V1, _M2, _M2, _V1, _M2, _M2,
+                         _M2, _V1, _M2, _W2, _W3))
+def _residuals_jacobian(n, pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1,
                         R_rl1, res, J):
     """
-    Residuals (N, 8) and Jacobian (N, 8, 14) of the four views of points (a, b, rho).
+    Residuals (n, 8) and Jacobian (n, 8, 14) of the four views of the first n points (a, b, rho).
 
     Columns: the point (a, b, rho), the motion increment xi = (v, w), the rig error; the rig
     columns (right views) are constant and left as they are. ``R``, ``t``: the motion (pose of
@@ -458,7 +459,7 @@ def _residuals_jacobian(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1
     Rt_t = np.empty(3)  # R^T t
     for c in range(3):
         Rt_t[c] = R[0, c] * t[0] + R[1, c] * t[1] + R[2, c] * t[2]
-    for i in range(pts.shape[0]):
+    for i in range(n):
         a, b, rho = pts[i, 0], pts[i, 1], pts[i, 2]
         Ji = J[i]
         # Previous left: K (a, b, 1).
@@ -514,17 +515,17 @@ _GLOBAL_FROM = np.array([0, 0, 6, 6, 0, 0, 0, 0])
 _GLOBAL_TO = np.array([0, 0, 11, 11, 6, 6, 11, 11])
 
 
-@kernel()
-def _reduced_normal_equations(J, res, weights, S, s, Hpp_inv, Hpg, bp):
+@kernel(numba.types.boolean(numba.types.int64, _M3, _M2, _M2, _W2, _W1, _W3, _W3, _W2))
+def _reduced_normal_equations(n, J, res, weights, S, s, Hpp_inv, Hpg, bp):
     """
     Write the normal equations of the global parameters (motion, rig), points eliminated.
 
-    ``J`` (N, 8, 3 + 11) as ``_residuals_jacobian`` writes it, ``res`` and ``weights``
-    (N, 8); writes ``S`` (11, 11) and ``s`` (11,) (Schur complements), and per point
-    ``Hpp_inv`` (N, 3, 3), ``Hpg`` (N, 3, 11) and ``bp`` (N, 3). Sums skip the Jacobian's
+    The first n points of ``J`` (N, 8, 3 + 11) as ``_residuals_jacobian`` writes it, ``res``
+    and ``weights`` (N, 8); writes ``S`` (11, 11) and ``s`` (11,) (Schur complements), and per
+    point ``Hpp_inv`` (N, 3, 3), ``Hpg`` (N, 3, 11) and ``bp`` (N, 3). Sums skip the Jacobian's
     zero blocks (``_GLOBAL_FROM``, ``_GLOBAL_TO``). False when a point's 3x3 block is singular.
     """
-    n, m, cols = J.shape
+    m, cols = J.shape[1], J.shape[2]
     g = cols - 3
     S[:, :] = 0.0
     s[:] = 0.0
@@ -578,14 +579,14 @@ def _reduced_normal_equations(J, res, weights, S, s, Hpp_inv, Hpg, bp):
 
 
 @kernel()
-def _median_abs(res, mask, first, buf):
+def _median_abs(n, res, mask, first, buf):
     """
-    Median of ``|res[:, first:]|`` where ``mask`` > 0 (NaN if any is NaN or none is), and count.
+    Median of ``|res[:n, first:]|`` where ``mask`` > 0 (NaN if any is NaN or none is), and count.
 
     ``buf`` (at least ``res.size``) is scratch space.
     """
     m, finite = 0, True
-    for i in range(res.shape[0]):
+    for i in range(n):
         for k in range(first, res.shape[1]):
             if mask[i, k] > 0:
                 buf[m] = abs(res[i, k])
@@ -593,12 +594,45 @@ def _median_abs(res, mask, first, buf):
                 m += 1
     if m == 0 or not finite:
         return np.nan, m
-    return np.median(buf[:m]), m
+    k = m // 2
+    upper = _select(buf, m, k)
+    if m % 2:
+        return upper, m
+    lower = buf[0]
+    for i in range(1, k):
+        lower = max(lower, buf[i])
+    return 0.5 * (lower + upper), m
 
 
 @kernel()
-def _rotate_by(R, w):
-    """``R`` (3, 3) times the rotation of rotation vector ``w`` (3,) (rad), in place."""
+def _select(a, n, k):
+    """Return the ``k``-th smallest of ``a[:n]`` (no NaN), reordering it: ``a[:k]`` below."""
+    lo, hi = 0, n - 1
+    while lo < hi:  # Hoare's selection
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@kernel()
+def _rotate_by(R, v, at):
+    """``R`` (3, 3) times the rotation of rotation vector ``v[at:at + 3]`` (rad), in place."""
+    w = (v[at], v[at + 1], v[at + 2])
     th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
     th = math.sqrt(th2)
     if th < 1e-8:
@@ -620,7 +654,19 @@ def _rotate_by(R, w):
     for r in range(3):
         for c in range(3):
             row[c] = R[r, 0] * E[0, c] + R[r, 1] * E[1, c] + R[r, 2] * E[2, c]
-        R[r, :] = row
+        for c in range(3):
+            R[r, c] = row[c]
+
+
+@kernel()
+def _move_point(pts, z, mask, J, i, to):
+    """Copy point ``i``'s rows of ``pts``, ``z``, ``mask`` and ``J`` to row ``to``."""
+    for k in range(pts.shape[1]):
+        pts[to, k] = pts[i, k]
+    for k in range(z.shape[1]):
+        z[to, k], mask[to, k] = z[i, k], mask[i, k]
+        for c in range(J.shape[2]):
+            J[to, k, c] = J[i, k, c]
 
 
 @kernel(numba.types.int64(_W2, _W2, _W2, _W2, _W1, _M2, _M2, _V1, _M2, _M2, _M2, _V1, _M2, _W3,
@@ -646,7 +692,7 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
         for k in range(8):
             good = good and math.isfinite(z[i, k])
         if good:
-            pts[n], z[n], mask[n], J[n] = pts[i], z[i], mask[i], J[i]
+            _move_point(pts, z, mask, J, i, n)
             n += 1
     if n < min_points:
         return n
@@ -656,14 +702,14 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
     chol, tmp, d_xi, e = np.zeros((6, 6)), np.empty(6), np.empty(6), np.empty(3)
     sigma = np.nan
     for it in range(iterations + 1):
-        _residuals_jacobian(pts[:n], z[:n], mask[:n], R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1,
-                            K_R1, t_rl1, R_rl1, res[:n], J[:n])
+        _residuals_jacobian(n, pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1,
+                            R_rl1, res, J)
         # Robust scale and weights (Huber); the first pass uses unit weights.
         if it == 0:  # the previous pair fixed the points: the current views carry the errors
-            med, _ = _median_abs(res[:n], mask[:n], 4, buf)
+            med, _ = _median_abs(n, res, mask, 4, buf)
             sigma = 1.4826 * med
         else:
-            med, n_res = _median_abs(res[:n], mask[:n], 0, buf)
+            med, n_res = _median_abs(n, res, mask, 0, buf)
             dof = max(n_res - 3 * n - n_glob, 1)
             sigma = 1.4826 * med * math.sqrt(n_res / dof)
         sigma = min_sigma if min_sigma > sigma else sigma  # (NaN stays NaN)
@@ -675,8 +721,9 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
                     finite = finite and not np.isnan(res[i, k])
                     big = max(big, abs(res[i, k]))
                 if finite and big < outlier_sigmas * sigma:
-                    pts[kept], z[kept], mask[kept] = pts[i], z[i], mask[i]
-                    res[kept], J[kept] = res[i], J[i]
+                    _move_point(pts, z, mask, J, i, kept)
+                    for k in range(8):
+                        res[kept, k] = res[i, k]
                     kept += 1
             n = kept
             if n < min_points:
@@ -686,9 +733,10 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
                 for k in range(8):
                     weights[i, k] = mask[i, k] * min(1.0, k_huber / max(abs(res[i, k]), 1e-12))
         else:
-            weights[:n] = mask[:n]
-        if not _reduced_normal_equations(J[:n], res[:n], weights[:n], S, s, Hpp_inv[:n],
-                                         Hpg[:n], bp[:n]):
+            for i in range(n):
+                for k in range(8):
+                    weights[i, k] = mask[i, k]
+        if not _reduced_normal_equations(n, J, res, weights, S, s, Hpp_inv, Hpg, bp):
             return -1
         cholesky(S, 6, chol)
         if it == iterations:
@@ -706,12 +754,13 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
                     Hpp_inv[i, a, 2] * e[2]
         for r in range(3):  # T <- T exp(xi)
             t[r] += R[r, 0] * d_xi[0] + R[r, 1] * d_xi[1] + R[r, 2] * d_xi[2]
-        _rotate_by(R, d_xi[3:])
+        _rotate_by(R, d_xi, 3)
     # Eliminate the motion: information and gradient of theta alone.
-    col, x = np.empty(6), np.empty((6, n_glob - 6))
+    col, x = np.empty(6), np.empty((n_glob - 6, 6))  # x[b] = S_mm^-1 S_m,6+b
     for b in range(n_glob - 6):
-        col[:] = S[:6, 6 + b]
-        cholesky_solve(chol, 6, col, tmp, x[:, b])
+        for c in range(6):
+            col[c] = S[c, 6 + b]
+        cholesky_solve(chol, 6, col, tmp, x[b])
     cholesky_solve(chol, 6, s, tmp, d_xi)
     for a in range(n_glob - 6):
         acc = s[6 + a]
@@ -721,7 +770,7 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
         for b in range(n_glob - 6):
             acc = S[6 + a, 6 + b]
             for c in range(6):
-                acc -= S[6 + a, c] * x[c, b]
+                acc -= S[6 + a, c] * x[b, c]
             info[a, b] = acc
     sigma_out[0] = sigma
     return n
