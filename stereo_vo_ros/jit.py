@@ -74,9 +74,13 @@ def _drop_stale_cache(fn) -> None:
         pass
 
 
-def kernel(signatures=None):
+def kernel(signatures=None, exact: bool = False):
     """
     Return ``numba.njit`` with ``JIT`` (eager when ``signatures`` are given) as a decorator.
+
+    With ``exact`` the kernel is compiled without ``JIT``'s fast-math flags: IEEE arithmetic in
+    the order written, as NumPy evaluates it, for formulas whose exact zeros mean something (a
+    fused multiply-add turns ``a * b - c * d`` of equal products into rounding noise).
 
     Numba keeps its cache next to the module, else in the user's cache directory; with neither
     writable (a read-only install run by a user without a writable home) the kernel is compiled
@@ -84,18 +88,19 @@ def kernel(signatures=None):
     another version of this module is dropped first (``_drop_stale_cache``).
     """
     args = () if signatures is None else (signatures,)
+    options = {**JIT, 'fastmath': False} if exact else JIT
 
     def decorate(fn):
         _drop_stale_cache(fn)
         t0 = time.perf_counter()
         try:
-            compiled = numba.njit(*args, **JIT)(fn)
+            compiled = numba.njit(*args, **options)(fn)
         except RuntimeError as exc:  # "cannot cache function ...: no locator available"
             if not _UNCACHED:
                 LOG.warning('compiled kernels are not cached (%s): each start compiles them '
                             'again, which takes %d-%d s', exc, *COMPILE_S)
             _UNCACHED.append(fn.__qualname__)
-            compiled = numba.njit(*args, **{**JIT, 'cache': False})(fn)
+            compiled = numba.njit(*args, **{**options, 'cache': False})(fn)
         if signatures is not None:
             _count_compiled(compiled, time.perf_counter() - t0)
         return compiled

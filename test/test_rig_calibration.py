@@ -17,8 +17,8 @@ from stereo_vo_ros.estimation.rig_calibration import (apply_homography, camera_i
                                                       refined_camera_infos, rig_jacobian,
                                                       RigCalibrator, right_homography,
                                                       row_coupling)
-from stereo_vo_ros.estimation.rig_measurement import (initial_points, measure_pair,
-                                                      moved_right_points)
+from stereo_vo_ros.estimation.rig_measurement import (_median_abs, initial_points,
+                                                      measure_pair, moved_right_points)
 from stereo_vo_ros.io import write_kitti
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import Correspondences, StereoFrame, TrackingStatus
@@ -258,6 +258,8 @@ def test_moved_right_points_follow_their_definition():
         assert np.isnan(got[5]).all() and np.isfinite(np.delete(got, 5, 0)).all()
     assert np.array_equal(moved_right_points(np.eye(3), None, left, right, True), right,
                           equal_nan=True)
+    with pytest.raises(ValueError):
+        moved_right_points(H, None, left, right, True, coupling[1:])
 
 
 def test_exact_rig_stays_at_zero():
@@ -651,14 +653,40 @@ def test_pair_measurement_drops_unusable_points():
     corr = Correspondences(z[:, 0:2], z[:, 2:4], z[:, 4:6], z[:, 6:8], np.arange(len(z)),
                            np.ones(len(z), np.int64))
     cfg = _pair_measurement_config(iterations=2)
-    m = measure_pair(corr, *calibs, T, cfg)
+    # Rows the tracker pinned, after the dropped ones: their flags move with their points.
+    used = np.ones(z.shape, bool)
+    used[20:, 7] = False
+    z[20:, 7] += 50.0
+    corr = Correspondences(z[:, 0:2], z[:, 2:4], z[:, 4:6], z[:, 6:8], np.arange(len(z)),
+                           np.ones(len(z), np.int64))
+    m = measure_pair(corr, *calibs, T, cfg, used)
     assert m is not None and m.n_points == len(z) - 4
     assert np.isfinite(m.information).all() and np.isfinite(m.gradient).all()
     assert m.sigma_px == cfg.min_sigma_px  # exact views: the scale's floor
     assert np.abs(np.linalg.solve(m.information, m.gradient)).max() < 1e-6
+    with pytest.raises(ValueError):
+        measure_pair(corr, *calibs, T, cfg, used[1:])
+    # Zero disparity: parallel rays, no point (NaN), not the rounding noise of the rays.
+    rho = initial_points(calibs[0], corr.prev_left, corr.prev_left)[:, 2]
+    assert np.isnan(rho[np.isfinite(corr.prev_left).all(axis=1)]).all()
     few = Correspondences(*(a[:cfg.min_points - 1] for a in (corr.prev_left, corr.prev_right,
                                                              corr.cur_left, corr.cur_right)))
     assert measure_pair(few, *calibs, T, cfg) is None
     z[:, 4] = np.nan
     assert measure_pair(Correspondences(z[:, 0:2], z[:, 2:4], z[:, 4:6], z[:, 6:8]), *calibs, T,
                         cfg) is None
+
+
+def test_pair_measurement_scale_is_the_median_of_the_used_residuals():
+    """The robust scale's median: odd and even counts, ties, unused and non-finite residuals."""
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 5, 6, 40, 41):
+        res = np.round(rng.normal(0.0, 2.0, (n, 8)), 1)  # ties
+        mask = (rng.random((n, 8)) < 0.7).astype(np.float64)
+        for first in (0, 4):
+            used = np.abs(res[:, first:][mask[:, first:] > 0])
+            med, count = _median_abs(n, res, mask, first, np.empty(8 * n))
+            assert count == used.size
+            assert med == np.median(used) if used.size else np.isnan(med)
+        res[0, 5], mask[0, 5] = np.nan, 1.0
+        assert np.isnan(_median_abs(n, res, mask, 0, np.empty(8 * n))[0])

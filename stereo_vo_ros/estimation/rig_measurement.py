@@ -185,13 +185,20 @@ def moved_right_points(H_row: np.ndarray, H_out: np.ndarray | None, left: np.nda
     np.ndarray
         (N, 2) float64 (a new array).
 
+    Raises
+    ------
+    ValueError
+        ``left`` or ``coupling`` does not have N rows.
+
     """
     right = np.ascontiguousarray(right, np.float64).reshape(-1, 2)
+    left = np.ascontiguousarray(left, np.float64).reshape(-1, 2)
+    if len(left) != len(right) or (coupling is not None and np.shape(coupling) != (len(right),)):
+        raise ValueError(f'{len(right)} right points need as many left points and couplings')
     out = np.empty_like(right)
     _moved_right_points(np.ascontiguousarray(H_row, np.float64),
                         np.ascontiguousarray(np.eye(3) if H_out is None else H_out, np.float64),
-                        H_out is not None, np.ascontiguousarray(left, np.float64).reshape(-1, 2),
-                        right, bool(rectified),
+                        H_out is not None, left, right, bool(rectified),
                         np.zeros(len(right)) if coupling is None else
                         np.ascontiguousarray(coupling, np.float64), out)
     return out
@@ -387,13 +394,14 @@ def initial_points(calib: StereoCalibration, prev_left: np.ndarray, prev_right: 
     return out
 
 
-@kernel(numba.types.void(_M2, _M2, _M2, _M2, _V1, _W2))
+@kernel(numba.types.void(_M2, _M2, _M2, _M2, _V1, _W2), exact=True)
 def _ray_points(left, right, K_left_inv, right_to_left, centre, out):
     """
     ``initial_points`` into ``out``: rays of the left and right pixels, their closest points.
 
     ``right_to_left`` (3, 3) maps right pixels to rays in the left frame; ``centre`` (3,) is
-    the right optical centre in the left frame (m).
+    the right optical centre in the left frame (m). Exact arithmetic: parallel rays (zero
+    disparity) give 0 / 0, NaN, as they must, not the rounding noise of fused multiply-adds.
     """
     ray_r = np.empty(3)
     for i in range(left.shape[0]):
@@ -677,6 +685,9 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
     """
     ``measure_pair``'s bundle adjustment; returns the points kept, -1 for a singular block.
 
+    A block is singular when a point's 3x3 block has no inverse or the motion's 6x6 block (points
+    eliminated) is not positive definite.
+
     ``pts`` (N, 3), ``z`` and ``mask`` (N, 8), the motion ``R``, ``t`` and ``J`` (N, 8, 14)
     with its rig columns filled are changed in place (the kept points first). Writes the
     information ``info`` (5, 5) and gradient ``grad`` (5,) on the rig error (points and motion
@@ -739,6 +750,8 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
         if not _reduced_normal_equations(n, J, res, weights, S, s, Hpp_inv, Hpg, bp):
             return -1
         cholesky(S, 6, chol)
+        if not chol[5, 5] > 0.0:  # the motion block is singular (NaN from the failed pivot on)
+            return -1
         if it == iterations:
             break
         # Gauss-Newton step of points and motion; theta held (its columns left out).
@@ -801,6 +814,13 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     -------
     PairMeasurement or None when too few points remain.
 
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        A point's block or the motion's block of the normal equations is singular.
+    ValueError
+        ``used`` is not (N, 8).
+
     Notes
     -----
     Residuals (pixels, 8 per point): previous left, previous right, current left, current
@@ -814,6 +834,8 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     run in one compiled kernel (``_adjust``).
 
     """
+    if used is not None and np.shape(used) != (len(corr), 8):
+        raise ValueError(f'used must be ({len(corr)}, 8), got {np.shape(used)}')
     if len(corr) < cfg.min_points:
         return None
     z = np.concatenate([corr.prev_left, corr.prev_right, corr.cur_left, corr.cur_right], 1
@@ -834,7 +856,7 @@ def measure_pair(corr: Correspondences, calib_prev: StereoCalibration,
     n = _adjust(pts, z, mask, R, t, *cams, J, cfg.iterations, cfg.min_points,
                 cfg.min_sigma_px, cfg.outlier_sigmas, cfg.huber_sigmas, info, grad, sigma)
     if n < 0:
-        raise np.linalg.LinAlgError('singular point block')
+        raise np.linalg.LinAlgError('singular point or motion block')
     if n < cfg.min_points:
         return None
     # Scaled by the noise.
