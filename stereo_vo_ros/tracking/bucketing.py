@@ -8,9 +8,13 @@ ones first. Features outside the ROI are dropped.
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 from ..config import BucketingConfig
+from ..jit import kernel, readonly
 
 
 def region_of_interest(size: tuple[int, int], margin: int) -> tuple[int, int, int, int]:
@@ -44,16 +48,32 @@ def bucket_index(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig
     (N,) int64 bucket index in ``[0, rows*cols)`` or -1.
 
     """
-    points = np.asarray(points, np.float64).reshape(-1, 2)
+    points = np.ascontiguousarray(points, np.float64).reshape(-1, 2)
     x0, y0, x1, y1 = region_of_interest(size, cfg.roi_margin_px)
-    inside = (points[:, 0] >= x0) & (points[:, 0] < x1) & (points[:, 1] >= y0) & \
-        (points[:, 1] < y1)
-    col = np.floor((points[:, 0] - x0) * cfg.cols / (x1 - x0)).astype(np.int64)
-    row = np.floor((points[:, 1] - y0) * cfg.rows / (y1 - y0)).astype(np.int64)
-    # np.minimum/np.maximum: np.clip's wrapper costs more than the clipping here.
-    idx = np.minimum(np.maximum(row, 0), cfg.rows - 1) * cfg.cols + \
-        np.minimum(np.maximum(col, 0), cfg.cols - 1)
-    return np.where(inside, idx, -1)
+    out = np.empty(len(points), np.int64)
+    _bucket_index(points, float(x0), float(y0), float(x1), float(y1), int(cfg.cols),
+                  int(cfg.rows), out)
+    return out
+
+
+@kernel(numba.types.void(readonly(numba.types.float64, 2), *[numba.types.float64] * 4,
+                         numba.types.int64, numba.types.int64,
+                         numba.types.Array(numba.types.int64, 1, 'C')), exact=True)
+def _bucket_index(points, x0, y0, x1, y1, cols, rows, out):
+    """
+    ``bucket_index`` into ``out``: region (x0, y0, x1, y1), ``rows`` x ``cols`` buckets.
+
+    Exact arithmetic (the bucket of a point on a bucket's edge is the one of the same
+    operations in NumPy: ``floor((x - x0) * cols / (x1 - x0))``).
+    """
+    for i in range(points.shape[0]):
+        x, y = points[i, 0], points[i, 1]
+        if x >= x0 and x < x1 and y >= y0 and y < y1:  # (NaN is outside)
+            col = min(max(int(math.floor((x - x0) * cols / (x1 - x0))), 0), cols - 1)
+            row = min(max(int(math.floor((y - y0) * rows / (y1 - y0))), 0), rows - 1)
+            out[i] = row * cols + col
+        else:
+            out[i] = -1
 
 
 def select(points: np.ndarray, size: tuple[int, int], cfg: BucketingConfig,
