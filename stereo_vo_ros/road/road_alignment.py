@@ -494,6 +494,137 @@ def _moved_rms(proj, alive, f, free, step):
     return math.sqrt(total / n) if n else math.nan
 
 
+#: Smallest pivot magnitude of ``_solve_lu`` (that of ``cv2.solve``'s LU decomposition).
+_LU_MIN_PIVOT = 100 * np.finfo(np.float64).eps
+
+
+@kernel()
+def _solve_lu(A, b, x):
+    """
+    Solve ``A x = b`` ((k, k), (k,)) into ``x`` by LU with partial pivoting (as ``cv2.solve``).
+
+    False, ``x`` unset, when a pivot is below ``_LU_MIN_PIVOT`` in magnitude (singular).
+    """
+    k = A.shape[0]
+    M, y = A.copy(), b.copy()
+    for c in range(k):
+        p = c
+        for row in range(c + 1, k):
+            if abs(M[row, c]) > abs(M[p, c]):
+                p = row
+        if not abs(M[p, c]) >= _LU_MIN_PIVOT:
+            return False
+        for j in range(k):
+            M[c, j], M[p, j] = M[p, j], M[c, j]
+        y[c], y[p] = y[p], y[c]
+        for row in range(c + 1, k):
+            g = M[row, c] / M[c, c]
+            for j in range(c, k):
+                M[row, j] -= g * M[c, j]
+            y[row] -= g * y[c]
+    for c in range(k - 1, -1, -1):
+        s = y[c]
+        for j in range(c + 1, k):
+            s -= M[c, j] * x[j]
+        x[c] = s / M[c, c]
+    return True
+
+
+@kernel()
+def _exp_se3_times(delta, T):
+    """``T`` (4, 4) <- ``_exp_se3(delta) @ T``, in place (Rodrigues' formula)."""
+    wx, wy, wz = delta[3], delta[4], delta[5]
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    E = np.eye(3)
+    if theta >= np.finfo(np.float64).eps:
+        c, s = math.cos(theta), math.sin(theta)
+        c1 = 1.0 - c
+        rx, ry, rz = wx / theta, wy / theta, wz / theta
+        E[0, 0], E[0, 1], E[0, 2] = c + c1 * rx * rx, c1 * rx * ry - s * rz, c1 * rx * rz + s * ry
+        E[1, 0], E[1, 1], E[1, 2] = c1 * ry * rx + s * rz, c + c1 * ry * ry, c1 * ry * rz - s * rx
+        E[2, 0], E[2, 1], E[2, 2] = c1 * rz * rx - s * ry, c1 * rz * ry + s * rx, c + c1 * rz * rz
+    out = np.empty((3, 4))
+    for a in range(3):
+        for col in range(4):
+            out[a, col] = E[a, 0] * T[0, col] + E[a, 1] * T[1, col] + E[a, 2] * T[2, col]
+        out[a, 3] += delta[a]
+    T[:3, :] = out
+
+
+@kernel()
+def _plane_warp(T, normal, d, f, cx, cy, G):
+    """
+    Write ``G`` (3, 3), pixels of the current level to the previous one's, through the plane.
+
+    ``K (R + t n^T / d)^-1 K^-1`` with ``T`` = (R, t) (previous -> current frame), the plane
+    ``n . X = d`` (previous frame, m) and ``K`` of focal length ``f`` and centre (cx, cy).
+    """
+    m = np.empty((3, 3))
+    for a in range(3):
+        for col in range(3):
+            m[a, col] = T[a, col] + T[a, 3] * normal[col] / d
+    a00, a01, a02 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1], m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2], \
+        m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+    a10, a11, a12 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2], m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0], \
+        m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+    a20, a21, a22 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0], m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1], \
+        m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    det = m[0, 0] * a00 + m[0, 1] * a10 + m[0, 2] * a20
+    inv = 1.0 / det if det != 0.0 else 0.0  # (cv2.invert gives zeros then)
+    mi = np.empty((3, 3))
+    mi[0, 0], mi[0, 1], mi[0, 2] = a00 * inv, a01 * inv, a02 * inv
+    mi[1, 0], mi[1, 1], mi[1, 2] = a10 * inv, a11 * inv, a12 * inv
+    mi[2, 0], mi[2, 1], mi[2, 2] = a20 * inv, a21 * inv, a22 * inv
+    for col in range(3):  # K mi
+        G[0, col] = f * mi[0, col] + cx * mi[2, col]
+        G[1, col] = f * mi[1, col] + cy * mi[2, col]
+        G[2, col] = mi[2, col]
+    for a in range(3):  # times K^-1 = [[1/f, 0, -cx/f], [0, 1/f, -cy/f], [0, 0, 1]]
+        g0, g1, g2 = G[a, 0], G[a, 1], G[a, 2]
+        G[a, 0], G[a, 1], G[a, 2] = g0 / f, g1 / f, g2 - (cx * g0 + cy * g1) / f
+
+
+@kernel(_F8(_M2, _W2, _F8, _F8, _F8, _F8, _IMG, _F8, _M2, _V1, _V1, _V1, _F8, _F8, _I8,
+            readonly(numba.types.int64, 1), _W1, _W2, _B1, _W2, _W1, _W1, _W2, _W1, _W1, _F8))
+def _align_level(X, T, f, cx, cy, min_z, img, row0, tmpl, us, vs, normal, d, need, iterations,
+                 free, bright, proj, alive, cur_s, r, r_alive, A, b, step, scale):
+    """
+    ``align``'s Gauss-Newton iterations on one level; return the residual scale, -1 on failure.
+
+    ``X`` (3, N) the road points (m, previous frame), ``T`` (4, 4) previous -> current frame and
+    ``bright`` (2,) gain and offset, both updated in place; ``proj``, ``alive``, ``cur_s``,
+    ``r``, ``r_alive`` as ``_warp_road`` writes them, ``A``, ``b`` the last normal equations and
+    ``step`` (k + 2,) the last step. Fails when fewer than ``need`` pixels stay in view, a
+    gradient is not finite or the system is singular. ``scale`` is returned without iterations.
+    """
+    k = free.shape[0]
+    G = np.empty((3, 3))
+    delta = np.zeros(6)
+    for _ in range(iterations):
+        # The exposure may change between the pairs: r = g I_cur + o - I_prev.
+        n_ok = _warp_road(X, T, f, cx, cy, min_z, img, row0, tmpl, bright[0], bright[1], proj,
+                          alive, cur_s, r, r_alive)
+        if n_ok < need:
+            return -1.0
+        # ESM (Benhimane & Malis): the mean of the current image's gradient and the template's,
+        # carried into current pixels by the Jacobian of the inverse plane warp G (current ->
+        # previous pixels). The current image alone (forward additive) converged at a third of
+        # the rate: near the camera it shows the road larger and sharper than the template.
+        _plane_warp(T, normal, d, f, cx, cy, G)
+        scale = _scale(r_alive[:n_ok])
+        if not _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, bright[0], f,
+                              (CAUCHY_SCALES * scale) ** 2, MAX_DIFFERENCE ** 2, free, A, b):
+            return -1.0
+        if not _solve_lu(A, b, step):
+            return -1.0
+        for j in range(k):
+            delta[free[j]] = step[j]
+        _exp_se3_times(delta, T)
+        bright[0] += step[k]
+        bright[1] += step[k + 1]
+    return scale
+
+
 def _solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """Solve the small system ``A x = b`` ((k, k), (k,)): x (k,), or None when A is singular."""
     solved, x = cv2.solve(A, b.reshape(-1, 1), flags=cv2.DECOMP_LU)
@@ -776,13 +907,12 @@ class RoadAligner:
         k = len(free)
         free_idx = np.asarray(free, np.int64)
         # Maps previous-frame points into the current frame.
-        T_cp = np.linalg.inv(np.asarray(T_prev_cur, np.float64))
-        gain, offset = 1.0, 0.0
+        T_cp = np.ascontiguousarray(np.linalg.inv(np.asarray(T_prev_cur, np.float64)))
+        bright = np.array([1.0, 0.0])  # gain, offset
+        normal, scale = np.ascontiguousarray(plane.normal, np.float64), 1.0
         for index in reversed(range(len(prev.levels))):
             lp, lc = prev.levels[index], cur.levels[index]
             f, cx, cy = lp.intrinsics(calib)
-            K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
-            K_inv = np.array([[1.0 / f, 0.0, -cx / f], [0.0, 1.0 / f, -cy / f], [0.0, 0.0, 1.0]])
             if plane.pixels is not None:
                 us, vs, X, tmpl = plane.pixels[index]
             else:
@@ -802,33 +932,15 @@ class RoadAligner:
             alive, proj, r, r_alive = np.ones(n, bool), np.empty((5, n)), np.empty(n), \
                 np.empty(n)
             cur_s = np.empty((n, 3))
-            for _ in range(iterations):
-                # The exposure may change between the pairs: r = g I_cur + o - I_prev.
-                n_ok = _warp_road(X, T_cp, f, cx, cy, self.cfg.min_depth_m / 2, lc.left_grad,
-                                  float(lc.row0), tmpl, float(gain), float(offset), proj, alive,
-                                  cur_s, r, r_alive)
-                if n_ok < need:
-                    return None
-                # ESM (Benhimane & Malis): the mean of the current image's gradient and the
-                # template's, carried into current pixels by the Jacobian of the inverse plane
-                # warp G (current -> previous pixels). The current image alone (forward
-                # additive) converged at a third of the rate: near the camera it shows the
-                # road larger and sharper than the template.
-                G = K @ cv2.invert(T_cp[:3, :3] + np.outer(T_cp[:3, 3], plane.normal)
-                                   / plane.d)[1] @ K_inv
-                A, b = np.empty((k + 2, k + 2)), np.empty(k + 2)
-                scale = _scale(r_alive[:n_ok])
-                if not _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, float(gain), f,
-                                      (CAUCHY_SCALES * scale) ** 2, MAX_DIFFERENCE ** 2,
-                                      free_idx, A, b):
-                    return None
-                step = _solve(A, b)
-                if step is None:
-                    return None
-                delta = np.zeros(6)
-                delta[free] = step[:k]
-                T_cp = _exp_se3(delta) @ T_cp
-                gain, offset = gain + step[k], offset + step[k + 1]
+            A, b, step = np.empty((k + 2, k + 2)), np.empty(k + 2), np.empty(k + 2)
+            scale = _align_level(X, T_cp, f, cx, cy, self.cfg.min_depth_m / 2, lc.left_grad,
+                                 float(lc.row0), tmpl, np.ascontiguousarray(us, np.float64),
+                                 np.ascontiguousarray(vs, np.float64), normal, float(plane.d),
+                                 float(need), iterations, free_idx, bright, proj, alive, cur_s,
+                                 r, r_alive, A, b, step, scale)
+            if not scale > 0.0:
+                return None
+        n_ok = int(np.count_nonzero(alive))
         # RMS image motion of the road pixels in the last step (input pixels).
         moved = _moved_rms(proj, alive, f, free_idx, step[:k].astype(np.float64)) / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
