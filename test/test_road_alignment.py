@@ -10,7 +10,8 @@ from stereo_vo_ros.estimation.estimator import MotionEstimator
 from stereo_vo_ros.estimation.motion import velocity_from_transform
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import StereoFrame
-from stereo_vo_ros.road.road_alignment import RoadAligner, RoadPlane
+from stereo_vo_ros.road.road_alignment import (_exp_se3, _exp_se3_times, _plane_warp,
+                                               _solve_lu, RoadAligner, RoadPlane)
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 
 from test_estimator_core import kitti_calibration
@@ -396,3 +397,38 @@ def test_road_configuration_is_checked():
         Config().replace(**{'road.min_depth_m': 40.0, 'road.max_depth_m': 35.0})
     with pytest.raises(ConfigError, match='road.motion'):
         Config().replace(**{'road.motion': 'lateral'})
+
+
+def test_alignment_kernels_follow_opencv():
+    """The plane warp, the solve and the motion update of the alignment's iterations."""
+    rng = np.random.default_rng(4)
+    K = np.array([[700.0, 0.0, 600.0], [0.0, 700.0, 180.0], [0.0, 0.0, 1.0]])
+    normal = np.array([0.02, 0.999, -0.03]) / np.linalg.norm([0.02, 0.999, -0.03])
+    for _ in range(20):
+        T = _exp_se3(np.concatenate([rng.normal(0, 0.5, 3), rng.normal(0, 0.02, 3)]))
+        G = np.empty((3, 3))
+        _plane_warp(T, normal, 1.65, 700.0, 600.0, 180.0, G)
+        want = K @ cv2.invert(T[:3, :3] + np.outer(T[:3, 3], normal) / 1.65)[1] @ \
+            np.linalg.inv(K)
+        np.testing.assert_allclose(G, want, rtol=1e-9, atol=1e-12)
+        delta = np.concatenate([rng.normal(0, 0.1, 3), rng.normal(0, 0.01, 3)])
+        moved = T.copy()
+        _exp_se3_times(delta, moved)
+        np.testing.assert_allclose(moved, _exp_se3(delta) @ T, rtol=0, atol=1e-14)
+        M = rng.normal(size=(5, 5))
+        A, b, x = M @ M.T + 0.1 * np.eye(5), rng.normal(size=5), np.empty(5)
+        assert _solve_lu(A, b, x)
+        solved = cv2.solve(A, b.reshape(-1, 1), flags=cv2.DECOMP_LU)[1].ravel()
+        np.testing.assert_allclose(x, solved, rtol=1e-10)
+    # The camera on the plane: no inverse, zeros (as cv2.invert gives); a singular system.
+    T = np.eye(4)
+    T[1, 3] = -1.5
+    _plane_warp(T, np.array([0.0, 1.0, 0.0]), 1.5, 700.0, 600.0, 180.0, G)
+    assert not G.any()
+    A[4] = A[3]
+    assert not _solve_lu(A, b, x)
+    assert not cv2.solve(A, b.reshape(-1, 1), flags=cv2.DECOMP_LU)[0]
+    A[0, 0] = np.nan
+    assert not _solve_lu(A, b, x)
+    _exp_se3_times(np.array([0.0, 0.0, 0.0, np.nan, 0.0, 0.0]), moved)
+    assert np.isnan(moved[:3]).all()

@@ -38,8 +38,9 @@ kernels (:mod:`~stereo_vo_ros.jit`), which release the GIL: the pipeline refines
 its helper thread next to the tracking. The images are sampled with exact bilinear weights
 (``cv2.remap`` quantises them to 1/32 px in some versions and channel counts), from one plane
 per quantity (value, d/du, d/dv) that the OpenCV filters write in place. Points are stored one
-row per coordinate ((3, N)), small solves go through OpenCV, the lattice is computed once per
-level geometry, and a pixel that leaves the view is dropped for the rest of the level.
+row per coordinate ((3, N)), the motion's iterations of a level run in one kernel (its small
+solves with them; the plane's go through OpenCV), the lattice is computed once per level
+geometry, and a pixel that leaves the view is dropped for the rest of the level.
 """
 
 from __future__ import annotations
@@ -503,7 +504,9 @@ def _solve_lu(A, b, x):
     """
     Solve ``A x = b`` ((k, k), (k,)) into ``x`` by LU with partial pivoting (as ``cv2.solve``).
 
-    False, ``x`` unset, when a pivot is below ``_LU_MIN_PIVOT`` in magnitude (singular).
+    False, ``x`` unset, when a pivot is below ``_LU_MIN_PIVOT`` in magnitude or not a number
+    (singular). On a numerically singular system (condition number about 1e16) the verdict can
+    differ from ``cv2.solve``'s, whose elimination runs in another order.
     """
     k = A.shape[0]
     M, y = A.copy(), b.copy()
@@ -536,7 +539,7 @@ def _exp_se3_times(delta, T):
     wx, wy, wz = delta[3], delta[4], delta[5]
     theta = math.sqrt(wx * wx + wy * wy + wz * wz)
     E = np.eye(3)
-    if theta >= np.finfo(np.float64).eps:
+    if not theta < np.finfo(np.float64).eps:  # (NaN propagates, as in cv2.Rodrigues)
         c, s = math.cos(theta), math.sin(theta)
         c1 = 1.0 - c
         rx, ry, rz = wx / theta, wy / theta, wz / theta
@@ -551,13 +554,15 @@ def _exp_se3_times(delta, T):
     T[:3, :] = out
 
 
-@kernel()
+@kernel(exact=True)
 def _plane_warp(T, normal, d, f, cx, cy, G):
     """
     Write ``G`` (3, 3), pixels of the current level to the previous one's, through the plane.
 
     ``K (R + t n^T / d)^-1 K^-1`` with ``T`` = (R, t) (previous -> current frame), the plane
     ``n . X = d`` (previous frame, m) and ``K`` of focal length ``f`` and centre (cx, cy).
+    Exact arithmetic: a singular matrix (the camera on the plane) has a zero determinant and
+    gives zeros, as ``cv2.invert`` does, not the inverse of rounding noise.
     """
     m = np.empty((3, 3))
     for a in range(3):
@@ -932,7 +937,7 @@ class RoadAligner:
             alive, proj, r, r_alive = np.ones(n, bool), np.empty((5, n)), np.empty(n), \
                 np.empty(n)
             cur_s = np.empty((n, 3))
-            A, b, step = np.empty((k + 2, k + 2)), np.empty(k + 2), np.empty(k + 2)
+            A, b, step = (np.full(shape, np.nan) for shape in ((k + 2, k + 2), k + 2, k + 2))
             scale = _align_level(X, T_cp, f, cx, cy, self.cfg.min_depth_m / 2, lc.left_grad,
                                  float(lc.row0), tmpl, np.ascontiguousarray(us, np.float64),
                                  np.ascontiguousarray(vs, np.float64), normal, float(plane.d),
