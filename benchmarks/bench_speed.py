@@ -215,21 +215,23 @@ def main() -> int:
                          f'{totals[:, i, k].max():.2f}), CPU {np.median(cpu[:, i, k]):.2f} '
                          f'{verdict(med <= TARGET_TOTAL_MS)}')
         print(f'  [{i}] {name}: ' + '; '.join(cells))
-        posed = per_clip(lambda k: f'{np.median(to_pose[:, i, k]):.2f}')
-        print(f"  [{i}] ms per pair up to its pose, without the last pair's work after its pose "
-              f'(which a node runs after publishing; medians over rounds): {posed}')
-        split = per_clip(lambda k: medians(groups[:, i, k]))
-        print(f'  [{i}] ms per pair after a pair whose rig update measured / after one whose did '
-              f'not (medians over the pairs, then over rounds): {split}')
-        busy = per_clip(lambda k: f'{100 * np.median(caller[:, i, k]):.0f} %')
-        print(f"  [{i}] share of the time per pair the caller's thread was busy (its CPU time "
-              f'over the total; near 100 %: it bounds the pair): {busy}')
-        split = per_clip(lambda k: medians(where[:, i, k]))
-        print(f"  [{i}] CPU per pair where it ran (the caller's thread / the process's other "
-              f'threads / the worker process, ms; medians over rounds): {split}')
-        floor = per_clip(lambda k: f'{np.median(cpu[:, i, k]) / cores:.2f} ms')
-        print(f'  [{i}] mean CPU per pair over the {cores} CPUs (pairs cannot take less on '
-              f'average): {floor}')
+        # One line per figure: what it is, and its cell for clip k.
+        for text, cell in (
+                ("ms per pair up to its pose, without the last pair's work after its pose (which "
+                 'a node runs after publishing; medians over rounds)',
+                 lambda k: f'{np.median(to_pose[:, i, k]):.2f}'),
+                ('ms per pair after a pair whose rig update measured / after one whose did not '
+                 '(medians over the pairs, then over rounds)',
+                 lambda k: medians(groups[:, i, k])),
+                ("share of the time per pair the caller's thread was busy (its CPU time over the "
+                 'total; near 100 %: it bounds the pair)',
+                 lambda k: f'{100 * np.median(caller[:, i, k]):.0f} %'),
+                ("CPU per pair where it ran (the caller's thread / the process's other threads / "
+                 'the worker process, ms; medians over rounds)',
+                 lambda k: medians(where[:, i, k])),
+                (f'mean CPU per pair over the {cores} CPUs (pairs cannot take less on average)',
+                 lambda k: f'{np.median(cpu[:, i, k]) / cores:.2f} ms')):
+            print(f'  [{i}] {text}: {per_clip(cell)}')
     for i in range(1, len(configs)):
         extra = totals[:, i] - totals[:, 0]
         extra_cpu = cpu[:, i] / cpu[:, 0] - 1.0
