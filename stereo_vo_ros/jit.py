@@ -151,6 +151,23 @@ def image_signatures(make) -> list:
     return [make(readonly(t, 2)) for t in IMAGE_TYPES]
 
 
+#: The largest finite float64: ``finite`` compares magnitudes with it.
+_LARGEST = float(np.finfo(np.float64).max)
+
+
+@kernel()
+def finite(x):
+    """
+    Return whether ``x`` is neither NaN nor infinite, also in kernels compiled with ``JIT``.
+
+    Numba's ``math.isfinite(x)`` and ``np.isfinite(x)`` test ``x - x``: with ``reassoc`` and
+    ``nsz`` together, LLVM cancels that difference when ``x`` is a sum of terms, and the test
+    of a NaN sum gives True. A comparison of the magnitude has no terms to cancel, and NaN fails
+    it (the kernels assume no ``nnan``/``ninf``).
+    """
+    return abs(x) <= _LARGEST
+
+
 @kernel()
 def cholesky(mat, n, out):
     """

@@ -1,5 +1,5 @@
 """
-Tests of the compiled kernels' support (``stereo_vo_ros/jit.py``): their disk cache.
+Tests of the compiled kernels' support (``stereo_vo_ros/jit.py``): the finiteness test, the cache.
 
 The kernels themselves are tested where they are used (``test_affine_klt.py``,
 ``test_tracker.py``, ``test_rig_calibration.py``, ``test_estimator_fast_paths.py``).
@@ -12,6 +12,36 @@ import os
 from pathlib import Path
 import subprocess
 import sys
+
+import numba
+import numpy as np
+
+from stereo_vo_ros import jit
+
+
+@numba.njit(**{**jit.JIT, 'cache': False})
+def _sum_and_its_test(a, b, c, d):
+    """Return a sum of terms, as the kernels form them, and ``jit.finite`` of it (fast math)."""
+    s = 0.5 / c
+    g = 0.5 * a + b * s * (d - 1.0) + b * s * d
+    return jit.finite(g), g
+
+
+def test_finite_sees_non_finite_sums_in_fast_math_kernels():
+    """With reassoc and nsz, Numba's isfinite of a sum can cancel to True; ``finite`` does not."""
+    values = [0.0, 1.0, -2.5, 1e300, np.inf, -np.inf, np.nan]
+    for dtype in (np.float64, np.float32):
+        seen = set()
+        for a in values:
+            for b in values:
+                for c in (0.0, 1.0, np.inf):
+                    args = [dtype(v) for v in (a, b, c, 0.0)]
+                    ok, g = _sum_and_its_test(*args)
+                    assert ok == np.isfinite(g), (args, g)
+                    seen.add(ok)
+        assert seen == {True, False}
+    assert jit.finite(np.finfo(np.float64).max) and not jit.finite(np.float32(np.inf))
+    assert jit.finite(np.float32(3.0e38)) and jit.finite(-1e-320)
 
 
 def test_kernels_work_without_a_place_for_their_cache():

@@ -10,8 +10,8 @@ from stereo_vo_ros.estimation.estimator import MotionEstimator
 from stereo_vo_ros.estimation.motion import velocity_from_transform
 from stereo_vo_ros.pipeline import StereoOdometry
 from stereo_vo_ros.records import StereoFrame
-from stereo_vo_ros.road.road_alignment import (_exp_se3, _exp_se3_times, _plane_warp,
-                                               _solve_lu, RoadAligner, RoadPlane)
+from stereo_vo_ros.road.road_alignment import (_exp_se3, _exp_se3_times, _motion_system,
+                                               _plane_warp, _solve_lu, RoadAligner, RoadPlane)
 from stereo_vo_ros.synthetic import SequenceSpec, StereoRenderer
 
 from test_estimator_core import kitti_calibration
@@ -432,3 +432,27 @@ def test_alignment_kernels_follow_opencv():
     assert not _solve_lu(A, b, x)
     _exp_se3_times(np.array([0.0, 0.0, 0.0, np.nan, 0.0, 0.0]), moved)
     assert np.isnan(moved[:3]).all()
+
+
+def test_motion_system_refuses_a_gradient_that_is_not_finite():
+    """A NaN or infinite image gradient stops the step (the compiled sum's test is not folded)."""
+    rng = np.random.default_rng(7)
+    n = 6
+    cur_s, tmpl = rng.normal(0, 5, (n, 3)), rng.normal(0, 5, (n, 3))
+    us, vs = rng.uniform(0, 1200, n), rng.uniform(200, 370, n)
+    proj = np.vstack([us + 1, vs - 1, rng.normal(0, 0.3, n), rng.uniform(0.1, 0.3, n),
+                      rng.uniform(0.05, 0.2, n)])
+    r, alive, G = rng.normal(0, 3, n), np.ones(n, bool), np.eye(3)
+    free = np.arange(6, dtype=np.int64)
+
+    def system(cur, tpl):
+        A, b = np.empty((8, 8)), np.empty(8)
+        return _motion_system(cur, tpl, us, vs, proj, r, alive, G, 1.0, 700.0, 100.0, 1e4,
+                              free, A, b), A
+    ok, A = system(cur_s, tmpl)
+    assert ok and np.isfinite(A).all()
+    for bad in (np.nan, np.inf):
+        for image, column in ((0, 1), (0, 2), (1, 1), (1, 2)):
+            cur, tpl = cur_s.copy(), tmpl.copy()
+            (cur, tpl)[image][3, column] = bad
+            assert not system(cur, tpl)[0], (bad, image, column)

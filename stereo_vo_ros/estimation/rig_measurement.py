@@ -34,7 +34,8 @@ import numpy as np
 
 from .camera import StereoCalibration
 from ..config import RigConfig
-from ..jit import cholesky, cholesky_solve, image_signatures, kernel, kernel_image, readonly
+from ..jit import (cholesky, cholesky_solve, finite, image_signatures, kernel, kernel_image,
+                   readonly)
 from ..records import Correspondences
 
 #: Names of the state components, in order (rad, rad, rad, dimensionless, pixels).
@@ -349,7 +350,7 @@ def _row_couplings(img, cx, cy, half, step, out):
             hess[a, a] += 1e-4 * trace + 1e-6
         cholesky(hess, 3, chol)
         cholesky_solve(chol, 3, rhs, tmp, sol)
-        out[i] = sol[2] if math.isfinite(sol[2]) else 0.0
+        out[i] = sol[2] if finite(sol[2]) else 0.0
 
 
 # -- one pair's measurement -----------------------------------------------------------------------
@@ -593,14 +594,14 @@ def _median_abs(n, res, mask, first, buf):
 
     ``buf`` (at least ``res.size``) is scratch space.
     """
-    m, finite = 0, True
+    m, no_nan = 0, True
     for i in range(n):
         for k in range(first, res.shape[1]):
             if mask[i, k] > 0:
                 buf[m] = abs(res[i, k])
-                finite = finite and not np.isnan(buf[m])
+                no_nan = no_nan and not np.isnan(buf[m])
                 m += 1
-    if m == 0 or not finite:
+    if m == 0 or not no_nan:
         return np.nan, m
     k = m // 2
     upper = _select(buf, m, k)
@@ -699,9 +700,9 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
     for i in range(pts.shape[0]):  # points and views that are finite
         good = True
         for k in range(3):
-            good = good and math.isfinite(pts[i, k])
+            good = good and finite(pts[i, k])
         for k in range(8):
-            good = good and math.isfinite(z[i, k])
+            good = good and finite(z[i, k])
         if good:
             _move_point(pts, z, mask, J, i, n)
             n += 1
@@ -727,11 +728,11 @@ def _adjust(pts, z, mask, R, t, K_L0, K_R0, t_rl0, R_rl0, K_L1, K_R1, t_rl1, R_r
         if it > 0 or iterations == 0:
             kept = 0
             for i in range(n):
-                big, finite = 0.0, True
+                big, no_nan = 0.0, True
                 for k in range(8):
-                    finite = finite and not np.isnan(res[i, k])
+                    no_nan = no_nan and not np.isnan(res[i, k])
                     big = max(big, abs(res[i, k]))
-                if finite and big < outlier_sigmas * sigma:
+                if no_nan and big < outlier_sigmas * sigma:
                     _move_point(pts, z, mask, J, i, kept)
                     for k in range(8):
                         res[kept, k] = res[i, k]

@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from .motion import STATE_DIM
-from ..jit import cholesky, kernel, readonly
+from ..jit import cholesky, finite, kernel, readonly
 
 _F8 = numba.types.float64
 _SIGNATURE = numba.types.int64(
@@ -244,9 +244,9 @@ def sigma_update(x0, info_prior, L0, LiT0, XT, index, z, r_inv, dt, W, o, w0, sc
                         zbar[m] += wi * (plus[m] + minus[m])
                         D[j, m] = 0.5 * (plus[m] - minus[m])
                 for m in range(M):
-                    ok = math.isfinite(zb[m]) and math.isfinite(zbar[m])
+                    ok = finite(zb[m]) and finite(zbar[m])
                     for j in range(STATE_DIM):
-                        ok = ok and math.isfinite(D[j, m])
+                        ok = ok and finite(D[j, m])
                     valid[m] = ok
                     for i in range(STATE_DIM):
                         s = 0.0

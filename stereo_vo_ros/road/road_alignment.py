@@ -55,7 +55,7 @@ import numpy as np
 from ..config import RansacConfig, RoadConfig
 from ..estimation.camera import StereoCalibration
 from ..estimation.motion import velocity_from_transform
-from ..jit import kernel, readonly
+from ..jit import finite, kernel, readonly
 
 #: The plane lies at least this far below the optical centre (m).
 MIN_HEIGHT_M = 0.1
@@ -411,7 +411,7 @@ def _motion_system(cur_s, tmpl, us, vs, proj, r, alive, G, gain, f, c2, max_r2, 
             + tv * (G[1, 0] - vs[i] * G[2, 0])
         gy = 0.5 * gain * cur_s[i, 2] + tu * (G[0, 1] - us[i] * G[2, 1]) \
             + tv * (G[1, 1] - vs[i] * G[2, 1])
-        if not (math.isfinite(gx) and math.isfinite(gy)):
+        if not (finite(gx) and finite(gy)):
             return False
         _motion_row(f * gx, f * gy, xn, yn, iz, free, row)
         row[k] = cur_s[i, 0]

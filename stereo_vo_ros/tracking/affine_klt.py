@@ -40,7 +40,8 @@ import numba
 import numpy as np
 
 from ..config import TrackerConfig
-from ..jit import cholesky, cholesky_solve, image_signatures, kernel, kernel_image, readonly
+from ..jit import (cholesky, cholesky_solve, finite, image_signatures, kernel, kernel_image,
+                   readonly)
 
 #: Largest accepted move of a point by the refinement (pixels).
 MAX_SHIFT_PX = 2.0
@@ -162,8 +163,7 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
         gx0, gy0 = pts_to[i, 0], pts_to[i, 1]
         out[i, 0], out[i, 1] = gx0, gy0
         ok[i] = False
-        if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(gx0)
-                and math.isfinite(gy0)):
+        if not (finite(px) and finite(py) and finite(gx0) and finite(gy0)):
             continue
         _template(src, px, py, half, patch)
         k = 0
@@ -210,7 +210,7 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
         a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0
         cx, cy = gx0, (py if horizontal else gy0)
         img_std = err2 = 0.0
-        finite = True
+        moved = True
         for _ in range(iterations):
             _warped(dst, cx, cy, a00, a01, a10, a11, xs, ys, smp)
             m = 0.0
@@ -244,14 +244,14 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
             a00, a01, a10, a11 = (a00 * i00 + a01 * i10, a00 * i01 + a01 * i11,
                                   a10 * i00 + a11 * i10, a10 * i01 + a11 * i11)
             cx, cy = cx - (a00 * dp[4] + a01 * dp[5]), cy - (a10 * dp[4] + a11 * dp[5])
-            finite = (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(a00)
-                      and math.isfinite(a01) and math.isfinite(a10) and math.isfinite(a11))
-            if not finite:
+            moved = (finite(cx) and finite(cy) and finite(a00)
+                     and finite(a01) and finite(a10) and finite(a11))
+            if not moved:
                 break
         # Correlation of the windows at the last step: 1 - mean squared error / (2 var).
         zncc = 1.0 - err2 / (2.0 * tpl_std * tpl_std) if img_std > 1e-3 else 0.0
         det_a = a00 * a11 - a01 * a10
-        if (finite and zncc > MIN_ZNCC and DET_RANGE[0] < det_a < DET_RANGE[1]
+        if (moved and zncc > MIN_ZNCC and DET_RANGE[0] < det_a < DET_RANGE[1]
                 and max(abs(a00), abs(a01), abs(a10), abs(a11)) < MAX_A
                 and math.hypot(cx - gx0, cy - gy0) <= max_shift):
             out[i, 0], out[i, 1] = cx, cy
