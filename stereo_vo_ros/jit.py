@@ -163,7 +163,7 @@ def finite(x):
     Numba's ``math.isfinite(x)`` and ``np.isfinite(x)`` test ``x - x``: with ``reassoc`` and
     ``nsz`` together, LLVM cancels that difference when ``x`` is a sum of terms, and the test
     of a NaN sum gives True. A comparison of the magnitude has no terms to cancel, and NaN fails
-    it (the kernels assume no ``nnan``/``ninf``).
+    it (the kernels are compiled without ``nnan``/``ninf``).
     """
     return abs(x) <= _LARGEST
 

@@ -20,10 +20,10 @@ from stereo_vo_ros import jit
 
 
 @numba.njit(**{**jit.JIT, 'cache': False})
-def _sum_and_its_test(a, b, c, d):
+def _sum_and_its_test(h, a, b, c, d):
     """Return a sum of terms, as the kernels form them, and ``jit.finite`` of it (fast math)."""
-    s = 0.5 / c
-    g = 0.5 * a + b * s * (d - 1.0) + b * s * d
+    s = h / c  # h = 0.5 of the arguments' type: no float64 constant widens a float32 sum
+    g = h * a + b * s * (d - h - h) + b * s * d
     return jit.finite(g), g
 
 
@@ -35,11 +35,14 @@ def test_finite_sees_non_finite_sums_in_fast_math_kernels():
         for a in values:
             for b in values:
                 for c in (0.0, 1.0, np.inf):
-                    args = [dtype(v) for v in (a, b, c, 0.0)]
+                    args = [dtype(v) for v in (0.5, a, b, c, 0.0)]
                     ok, g = _sum_and_its_test(*args)
                     assert ok == np.isfinite(g), (args, g)
                     seen.add(ok)
         assert seen == {True, False}
+    # The sums were formed in the arguments' type (float32 ones too).
+    assert all(sig.return_type[1] == sig.args[0]
+               for sig in _sum_and_its_test.nopython_signatures)
     assert jit.finite(np.finfo(np.float64).max) and not jit.finite(np.float32(np.inf))
     assert jit.finite(np.float32(3.0e38)) and jit.finite(-1e-320)
 

@@ -233,9 +233,10 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
     24 road features of the first pair were right and the first estimate took the vehicles'
     5 m/s for the true 27 m/s. Aligning the whole road at once finds the speed to within
     0.6 m/s on the rendered highways seeds 0, 3, 9, 15, 35 at frames 0 and 100; at the first
-    pair of seeds 0-7, -1.65 to +0.53 m/s (mean -0.46, about -2 %), and of the photometric
-    highways 50-57, -0.80 to +0.28 m/s but for seed 57, whose search has no clear minimum
-    (contrast 0.99: not taken). The speed then predicts where the features went. The sign
+    pair of 150-frame scenes (the plane of that pair's features, ``prev_right`` given), seeds
+    0-7, -1.65 to +0.53 m/s (mean -0.46, about -2 %), and photometric highways 50-57, -0.80
+    to +0.28 m/s but for seed 57, whose search has no clear minimum (contrast 0.99: not
+    taken). The speed then predicts where the features went. The sign
     convention: a positive speed moves the camera forward (+z).
 
     With ``prev_right``, only pixels that see the road are compared: those whose left and

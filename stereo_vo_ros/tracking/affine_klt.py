@@ -210,7 +210,7 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
         a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0
         cx, cy = gx0, (py if horizontal else gy0)
         img_std = err2 = 0.0
-        moved = True
+        finite_model = True
         for _ in range(iterations):
             _warped(dst, cx, cy, a00, a01, a10, a11, xs, ys, smp)
             m = 0.0
@@ -244,14 +244,14 @@ def _refine_points(src, dst, pts_from, pts_to, half, step, iterations, horizonta
             a00, a01, a10, a11 = (a00 * i00 + a01 * i10, a00 * i01 + a01 * i11,
                                   a10 * i00 + a11 * i10, a10 * i01 + a11 * i11)
             cx, cy = cx - (a00 * dp[4] + a01 * dp[5]), cy - (a10 * dp[4] + a11 * dp[5])
-            moved = (finite(cx) and finite(cy) and finite(a00)
-                     and finite(a01) and finite(a10) and finite(a11))
-            if not moved:
+            finite_model = (finite(cx) and finite(cy) and finite(a00)
+                            and finite(a01) and finite(a10) and finite(a11))
+            if not finite_model:
                 break
         # Correlation of the windows at the last step: 1 - mean squared error / (2 var).
         zncc = 1.0 - err2 / (2.0 * tpl_std * tpl_std) if img_std > 1e-3 else 0.0
         det_a = a00 * a11 - a01 * a10
-        if (moved and zncc > MIN_ZNCC and DET_RANGE[0] < det_a < DET_RANGE[1]
+        if (finite_model and zncc > MIN_ZNCC and DET_RANGE[0] < det_a < DET_RANGE[1]
                 and max(abs(a00), abs(a01), abs(a10), abs(a11)) < MAX_A
                 and math.hypot(cx - gx0, cy - gy0) <= max_shift):
             out[i, 0], out[i, 1] = cx, cy
