@@ -236,8 +236,8 @@ def road_speed(prev_left: np.ndarray, cur_left: np.ndarray, calib: StereoCalibra
     pair of 150-frame scenes (the plane of that pair's features, ``prev_right`` given), seeds
     0-7, -1.65 to +0.53 m/s (mean -0.46, about -2 %), and photometric highways 50-57, -0.80
     to +0.28 m/s but for seed 57, whose search has no clear minimum (contrast 0.99: not
-    taken). The speed then predicts where the features went. The sign
-    convention: a positive speed moves the camera forward (+z).
+    taken). The speed then predicts where the features went. The sign convention: a positive
+    speed moves the camera forward (+z).
 
     With ``prev_right``, only pixels that see the road are compared: those whose left and
     right grey levels agree at the plane's disparity (``road_pixels_seen``). A vehicle ahead
