@@ -650,8 +650,6 @@ def test_pair_measurement_drops_unusable_points():
     z[3, 6] += 40.0  # a wrong current right match
     z[10, 0] = z[11, 5] = np.nan  # views a tracker could not give
     z[12, 2] = np.inf
-    corr = Correspondences(z[:, 0:2], z[:, 2:4], z[:, 4:6], z[:, 6:8], np.arange(len(z)),
-                           np.ones(len(z), np.int64))
     cfg = _pair_measurement_config(iterations=2)
     # Rows the tracker pinned, after the dropped ones: their flags move with their points.
     used = np.ones(z.shape, bool)

@@ -947,7 +947,7 @@ class RoadAligner:
                 return None
         n_ok = int(np.count_nonzero(alive))
         # RMS image motion of the road pixels in the last step (input pixels).
-        moved = _moved_rms(proj, alive, f, free_idx, step[:k].astype(np.float64)) / lp.scale
+        moved = _moved_rms(proj, alive, f, free_idx, step[:k]) / lp.scale
         if not moved < CONVERGED_PX or not np.all(np.isfinite(T_cp)):
             return None
         try:
