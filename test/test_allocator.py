@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+import pickle
 import resource
 import subprocess
 import sys
@@ -15,6 +16,7 @@ import pytest
 from stereo_vo_ros import Config, StereoOdometry
 from stereo_vo_ros.allocator import _glibc, keep_freed_memory, malloc_settings
 from stereo_vo_ros.parallel import ProcessWorker, Workers
+from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,18 +35,20 @@ from test_allocator import burst_faults
 kept = keep_freed_memory(int(sys.argv[1]))
 print(json.dumps([kept, burst_faults()]))
 """
-#: 2. The page faults of the caller's thread in each ``process`` call of a rendered city drive,
-#:    in a process whose glibc thresholds are still at their start (128 kB), as in a process
-#:    that has freed no large block yet.
+#: 2. The page faults of the caller's thread in each ``process`` call of a rendered city drive
+#:    (pickled frames, rendered by the test), in a process whose glibc thresholds are at their
+#:    start (128 kB) before anything is allocated, as in a process that has freed no large block
+#:    yet. Rendered in the same process, the drive left holes in the heap (3 MB free of 130 MB)
+#:    that now and then held an image-sized block, and the default run then faulted nothing.
 PIPELINE = """
-import ctypes, json, resource, sys
-from stereo_vo_ros import Config, StereoOdometry
+import ctypes, json, pickle, resource, sys
 from stereo_vo_ros.allocator import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
-from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
-frames = list(SyntheticSequence(SequenceSpec.preset('urban', n_frames=10, seed=3)))
 libc = ctypes.CDLL(None)
 libc.mallopt(M_MMAP_THRESHOLD, 128 << 10)
 libc.mallopt(M_TRIM_THRESHOLD, 128 << 10)
+from stereo_vo_ros import Config, StereoOdometry
+with open(sys.argv[2], 'rb') as stream:
+    frames = pickle.load(stream)
 vo = StereoOdometry(Config().replace(**{'pipeline.threads': 1,
                                         'pipeline.keep_freed_memory_mb': int(sys.argv[1])}))
 faults = []
@@ -95,8 +99,12 @@ def test_kept_memory_is_reused_instead_of_faulted_in_again():
 
 
 @needs_glibc
-def test_pipeline_keeps_its_pairs_memory_whatever_the_process_set_before():
-    default, kept = _run(PIPELINE, '0'), _run(PIPELINE, '32')
+def test_pipeline_keeps_its_pairs_memory_whatever_the_process_set_before(tmp_path):
+    frames = tmp_path / 'frames.pickle'
+    with open(frames, 'wb') as stream:
+        pickle.dump(list(SyntheticSequence(SequenceSpec.preset('urban', n_frames=10, seed=3))),
+                    stream)
+    default, kept = _run(PIPELINE, '0', str(frames)), _run(PIPELINE, '32', str(frames))
     assert len(default) == len(kept) == 10
     later = slice(4, None)  # the first pairs grow the heap
     assert np.median(kept[later]) <= 10, kept
