@@ -312,29 +312,43 @@ def test_fuse_is_a_kalman_update_of_the_measured_components():
 
 
 def test_pipeline_fuses_the_road_and_can_do_without(highway):
-    calib, frames, _ = highway
-    spec = SequenceSpec.preset('highway', seed=2)
-    renderer = StereoRenderer(spec)
-    frames = frames + [renderer.render(i) for i in range(3, 21)]
-    runs = {}
-    for enabled in (True, False):
-        vo = StereoOdometry(Config().replace(**{'road.enabled': enabled}))
-        results = [vo.process(fr.stereo_frame(calib)) for fr in frames]
-        runs[enabled] = results
-        assert not results[0].road_fused  # the first pair has nothing to align with
-        assert all(np.all(np.isfinite(r.T_world_cam)) for r in results)
-    fused = [r.road_fused for r in runs[True][1:]]
-    assert sum(fused) >= len(fused) - 2
-    assert all('road' in r.timings_ms for r in runs[True])
-    assert not any(r.road_fused or 'road' in r.timings_ms for r in runs[False])
-    # What the road measures, the forward step, is closer to the truth (pairs 2-20, |ratio - 1|:
-    # 0.24 % against 0.41 % for the features alone; over a handful of pairs either can be
-    # closer); both runs are within 6 cm of the truth after 17.5 m (pair 7).
-    assert forward_step_error(runs[True], frames) < \
-        0.8 * forward_step_error(runs[False], frames)
-    truth = frames[7].T_world_cam[:3, 3]
-    for results in runs.values():
-        assert np.linalg.norm(results[7].T_world_cam[:3, 3] - truth) < 0.06
+    """
+    Highway seeds 2-4, 20 pairs each: the road is fused on most pairs and cuts the step error.
+
+    Over seeds 0-9 the road was fused on 14-20 of 20 pairs, and the forward steps' error
+    (pairs 2-20, mean |ratio - 1|) was 0.26 % with it against 0.69 % with the features alone
+    (0.12 to 1.44 times per seed: over a handful of pairs either can be closer). Which pairs
+    fuse and by how much the error falls hangs on exact tracks: a render whose polygon edges
+    differ by a few pixels fused 17 of 20 pairs of seed 2 where this one fuses 18.
+    """
+    _, frames, _ = highway
+    errors, fused, pairs = {True: 0.0, False: 0.0}, 0, 0
+    for seed in (2, 3, 4):
+        renderer = StereoRenderer(SequenceSpec.preset('highway', seed=seed))
+        calib = renderer.calibration
+        drive = (frames if seed == 2 else []) + [renderer.render(i) for i in
+                                                 range(3 if seed == 2 else 0, 21)]
+        runs = {}
+        for enabled in (True, False):
+            vo = StereoOdometry(Config().replace(**{'road.enabled': enabled}))
+            results = [vo.process(fr.stereo_frame(calib)) for fr in drive]
+            vo.close()
+            runs[enabled] = results
+            assert not results[0].road_fused  # the first pair has nothing to align with
+            assert all(np.all(np.isfinite(r.T_world_cam)) for r in results)
+            errors[enabled] += forward_step_error(results, drive)
+        fused += sum(r.road_fused for r in runs[True][1:])
+        pairs += len(drive) - 1
+        assert all('road' in r.timings_ms for r in runs[True])
+        assert not any(r.road_fused or 'road' in r.timings_ms for r in runs[False])
+        if seed == 2:  # both runs are within 6 cm of the truth after 17.5 m (pair 7)
+            truth = drive[7].T_world_cam[:3, 3]
+            for results in runs.values():
+                assert np.linalg.norm(results[7].T_world_cam[:3, 3] - truth) < 0.06
+    assert fused >= 0.8 * pairs, (fused, pairs)
+    # What the road measures, the forward step, is closer to the truth (0.69 % against 2.65 %
+    # summed over the three seeds; 0.93 % against 2.89 % on the other render).
+    assert errors[True] < 0.6 * errors[False], errors
 
 
 def test_pipeline_refines_the_road_plane_through_the_rig_correction():
