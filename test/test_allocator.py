@@ -16,7 +16,6 @@ import pytest
 from stereo_vo_ros import Config, StereoOdometry
 from stereo_vo_ros.allocator import _glibc, keep_freed_memory, malloc_settings
 from stereo_vo_ros.parallel import ProcessWorker, Workers
-from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -106,6 +105,8 @@ def test_kept_memory_is_reused_instead_of_faulted_in_again():
 
 @needs_glibc
 def test_pipeline_keeps_its_pairs_memory_whatever_the_process_set_before(tmp_path):
+    # (Imported here: the worker processes of the other tests import this module.)
+    from stereo_vo_ros.synthetic import SequenceSpec, SyntheticSequence
     frames = tmp_path / 'frames.pickle'
     with open(frames, 'wb') as stream:
         pickle.dump(list(SyntheticSequence(SequenceSpec.preset('urban', n_frames=10, seed=3))),
