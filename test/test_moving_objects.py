@@ -23,8 +23,9 @@ REPO = Path(__file__).resolve().parents[1]
 CAMERA_HEIGHT_M = 1.65
 #: How far the road speed search's speed at a first pair may lie from the truth (fraction of
 #: it): it measures over the features' ground plane (its height off by -6 to +4 % over rendered
-#: highways, and the speed with it; -11 % on one render of photometric highway 50) on a 1 m/s
-#: grid. The failures it is tested against are off by 30 m/s or more.
+#: highways, and the speed with it) on a 1 m/s grid. The tested scenes give up to -6.7 %
+#: (highway_photometric 53 on OpenCV 4's render: 25 m/s for 26.8); the failures they guard
+#: took the vehicles' motion or no speed at all, off by about the whole speed.
 SEARCH_ERROR = 0.1
 #: Forward motion at 25 m/s (camera optical frame: z forward).
 HIGHWAY = np.array([0.0, 0.0, 25.0, 0.0, 0.0, 0.0])
@@ -448,7 +449,8 @@ def test_road_vehicle_profile_keeps_its_speed_past_vehicles_that_keep_pace():
     leaves about ten. Within two pairs those said the car had lost most of its 23 m/s; a car's
     acceleration (vehicle.acceleration_std in the profile) does not allow that. The profile
     keeps the speed with either sparse count, through the pairs that have too few inliers there
-    (which pairs, if any, hangs on exact tracks), and tracks every pair with the default count.
+    (which pairs, if any, hangs on exact tracks: 0-6 of 29 seen; the speed then coasts on the
+    prior, within 9.6 % of the truth), and tracks every pair with the default count.
     """
     calib, frames = render_pairs('highway', 10, 30, n_frames=150)
     profile = load(REPO / 'config' / 'road_vehicle.yaml')
@@ -464,8 +466,9 @@ def test_road_vehicle_profile_keeps_its_speed_past_vehicles_that_keep_pace():
                                   frames)[0]) < 0.6]
     assert failing
     for config in sparse:
-        ratios, _ = step_ratios(config, calib, frames)  # (a pair may have too few inliers)
-        assert np.all(np.abs(ratios - 1) < 0.1), ratios
+        ratios, statuses = step_ratios(config, calib, frames)
+        assert sum(status is not TrackingStatus.OK for status in statuses) <= len(statuses) // 3
+        assert np.all(np.abs(ratios - 1) < 0.15), ratios
     ratios, statuses = step_ratios(profile, calib, frames)
     assert all(status is TrackingStatus.OK for status in statuses)
     assert np.all(np.abs(ratios - 1) < 0.1), ratios

@@ -315,20 +315,21 @@ def test_pipeline_fuses_the_road_and_can_do_without(highway):
     """
     Highway seeds 2-4, 20 pairs each: the road is fused on most pairs and cuts the step error.
 
-    Over seeds 0-9 the road was fused on 14-20 of 20 pairs, and the forward steps' error
-    (pairs 2-20, mean |ratio - 1|) was 0.26 % with it against 0.69 % with the features alone
-    (0.12 to 1.44 times per seed: over a handful of pairs either can be closer). Which pairs
-    fuse and by how much the error falls hangs on exact tracks: a render whose polygon edges
-    differ by a few pixels fused 17 of 20 pairs of seed 2 where this one fuses 18.
+    Over seeds 0-9 the road was fused on 16-20 of 20 pairs (14-20 on OpenCV 4's render), and
+    the forward steps' error (pairs 2-20, mean |ratio - 1|) was 0.26 % with it against 0.69 %
+    with the features alone (0.12 to 1.44 times per seed: over a handful of pairs either can be
+    closer). Which pairs fuse and by how much the error falls hangs on exact tracks: a render
+    whose polygon edges differ by a few pixels fused 17 of 20 pairs of seed 2 where this one
+    fuses 18.
     """
     _, frames, _ = highway
-    errors, fused, pairs = {True: 0.0, False: 0.0}, 0, 0
+    ratios, fused, pairs = [], 0, 0
     for seed in (2, 3, 4):
         renderer = StereoRenderer(SequenceSpec.preset('highway', seed=seed))
         calib = renderer.calibration
         drive = (frames if seed == 2 else []) + [renderer.render(i) for i in
                                                  range(3 if seed == 2 else 0, 21)]
-        runs = {}
+        runs, errors = {}, {}
         for enabled in (True, False):
             vo = StereoOdometry(Config().replace(**{'road.enabled': enabled}))
             results = [vo.process(fr.stereo_frame(calib)) for fr in drive]
@@ -336,7 +337,8 @@ def test_pipeline_fuses_the_road_and_can_do_without(highway):
             runs[enabled] = results
             assert not results[0].road_fused  # the first pair has nothing to align with
             assert all(np.all(np.isfinite(r.T_world_cam)) for r in results)
-            errors[enabled] += forward_step_error(results, drive)
+            errors[enabled] = forward_step_error(results, drive)
+        ratios.append(errors[True] / errors[False])
         fused += sum(r.road_fused for r in runs[True][1:])
         pairs += len(drive) - 1
         assert all('road' in r.timings_ms for r in runs[True])
@@ -346,9 +348,9 @@ def test_pipeline_fuses_the_road_and_can_do_without(highway):
             for results in runs.values():
                 assert np.linalg.norm(results[7].T_world_cam[:3, 3] - truth) < 0.06
     assert fused >= 0.8 * pairs, (fused, pairs)
-    # What the road measures, the forward step, is closer to the truth (0.69 % against 2.65 %
-    # summed over the three seeds; 0.93 % against 2.89 % on the other render).
-    assert errors[True] < 0.6 * errors[False], errors
+    # What the road measures, the forward step, is closer to the truth: the error with it over
+    # the error without, per seed, 0.69 / 0.17 / 0.21 (0.77 / 0.28 / 0.20 on OpenCV 4's render).
+    assert np.mean(ratios) < 0.6, ratios
 
 
 def test_pipeline_refines_the_road_plane_through_the_rig_correction():
