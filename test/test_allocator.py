@@ -26,16 +26,20 @@ needs_process = pytest.mark.skipif(not ProcessWorker.available(),
                                    reason='the worker process needs /dev/shm (Linux)')
 
 #: The setting is process-wide and cannot be undone: the checks run in fresh interpreters.
-#: 1. A pair's worth of image-sized blocks allocated and freed, round after round: the page
-#:    faults of each round. glibc's thresholds are set to their start (128 kB) first: left to
-#:    itself glibc raises them when a large block is freed, so an import that had freed one left
-#:    the blocks in the heap without the setting too (all rounds without a fault, in one run).
-BURST = """
-import ctypes, json, sys
+#: Their first lines: glibc's thresholds pinned at their start (128 kB), its own adjustment off.
+PIN_START = """
+import ctypes
 from stereo_vo_ros.allocator import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
 libc = ctypes.CDLL(None)
 libc.mallopt(M_MMAP_THRESHOLD, 128 << 10)
 libc.mallopt(M_TRIM_THRESHOLD, 128 << 10)
+"""
+#: 1. A pair's worth of image-sized blocks allocated and freed, round after round: the page
+#:    faults of each round. glibc's thresholds are set to their start (128 kB) first: left to
+#:    itself glibc raises them when a large block is freed, so an import that had freed one left
+#:    the blocks in the heap without the setting too (all rounds without a fault, in one run).
+BURST = PIN_START + """
+import json, sys
 from stereo_vo_ros.allocator import keep_freed_memory
 sys.path.insert(0, sys.argv[2])
 from test_allocator import burst_faults
@@ -48,12 +52,8 @@ print(json.dumps([kept, burst_faults()]))
 #:    case of its defaults. Rendered in the same process, the drive left holes in the heap (3 MB
 #:    free of 130 MB) that now and then held an image-sized block, and the default run then
 #:    faulted nothing.
-PIPELINE = """
-import ctypes, json, pickle, resource, sys
-from stereo_vo_ros.allocator import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
-libc = ctypes.CDLL(None)
-libc.mallopt(M_MMAP_THRESHOLD, 128 << 10)
-libc.mallopt(M_TRIM_THRESHOLD, 128 << 10)
+PIPELINE = PIN_START + """
+import json, pickle, resource, sys
 from stereo_vo_ros import Config, StereoOdometry
 with open(sys.argv[2], 'rb') as stream:
     frames = pickle.load(stream)
